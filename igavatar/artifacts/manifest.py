@@ -1,0 +1,202 @@
+"""Artifact manifests: build, validate against `schemas/`, read back with hash checks.
+
+    manifest = build_manifest("dataset", out_dir, stage="preprocess", config=cfg, inputs=[...], data={...})
+    manifest = read_artifact(Path("runs/dataset"), expected="dataset")   # ArtifactError if wrong
+
+Every artifact directory holds `manifest.json`; its `outputs` list the sha256 of every other file,
+so a reader notices an edited, truncated or missing file and names it.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import platform
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+
+from igavatar import __version__
+from igavatar.errors import ArtifactError
+from schemas import load_schema
+
+MANIFEST_NAME = "manifest.json"
+
+#: Current MAJOR.MINOR layout version of each artifact kind; readers refuse another MAJOR.
+SCHEMA_VERSIONS: dict[str, str] = {
+    "capture": "1.0",
+    "dataset": "1.0",
+    "model": "1.0",
+    "mesh": "1.0",
+    "animation": "1.0",
+    "report": "1.0",
+}
+
+#: The command that makes each kind, named in errors so a user knows what to (re)run.
+PRODUCED_BY: dict[str, str] = {
+    "capture": "igavatar synth",
+    "dataset": "igavatar preprocess",
+    "model": "igavatar train",
+    "mesh": "igavatar export",
+    "animation": "igavatar animate",
+    "report": "igavatar eval",
+}
+
+
+def sha256_file(path: Path, chunk_bytes: int = 1 << 20) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk_bytes):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def sha256_json(value: Any) -> str:
+    """Hex sha256 of a JSON value in canonical form (sorted keys), e.g. a resolved config."""
+    text = json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _validation_message(error: jsonschema.ValidationError) -> str:
+    where = ".".join(str(p) for p in error.absolute_path) or "(top level)"
+    return f"{where}: {error.message}"
+
+
+def validate_against(schema_name: str, value: Any, what: str) -> None:
+    """Raise ArtifactError naming `what` and the first offending field if `value` fails the schema."""
+    schema = load_schema(schema_name)
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(value), key=lambda e: list(e.absolute_path))
+    if errors:
+        raise ArtifactError(f"{what} does not match schema {schema_name}: {_validation_message(errors[0])}")
+
+
+@dataclass(frozen=True)
+class InputRecord:
+    """One input of a stage: a file, or another artifact (hash of its manifest)."""
+
+    path: Path
+    artifact: str | None = None
+
+    def to_json(self) -> dict:
+        record: dict[str, Any] = {"path": str(self.path)}
+        if self.artifact is not None:
+            manifest_path = self.path / MANIFEST_NAME
+            record["sha256"] = sha256_file(manifest_path)
+            record["artifact"] = self.artifact
+            record["schema_version"] = json.loads(manifest_path.read_text())["schema_version"]
+        elif self.path.is_dir():
+            raise ValueError(f"input {self.path} is a directory but no artifact kind was given")
+        else:
+            record["sha256"] = sha256_file(self.path)
+        return record
+
+
+def build_manifest(
+    artifact: str,
+    directory: Path,
+    *,
+    stage: str,
+    config: dict,
+    inputs: list[InputRecord],
+    data: dict,
+    seed: int | None = None,
+    device: str = "cpu",
+    timings: dict[str, float] | None = None,
+    peak_memory: dict[str, float | None] | None = None,
+) -> dict:
+    """Hash every file under `directory`, assemble and validate the manifest, write it there.
+
+    Call this last, inside `atomic_directory`, once every output file is written.
+    """
+    outputs = []
+    for path in sorted(p for p in Path(directory).rglob("*") if p.is_file()):
+        rel = path.relative_to(directory).as_posix()
+        if rel == MANIFEST_NAME:
+            continue
+        outputs.append({"path": rel, "sha256": sha256_file(path), "bytes": path.stat().st_size})
+    manifest = {
+        "artifact": artifact,
+        "schema_version": SCHEMA_VERSIONS[artifact],
+        "tool_version": __version__,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "stage": stage,
+        "config": config,
+        "inputs": [record.to_json() for record in inputs],
+        "outputs": outputs,
+        "seed": seed,
+        "device": device,
+        "timings": dict(timings or {}),
+        "peak_memory": dict(peak_memory or {}),
+        "data": data,
+    }
+    validate_against("manifest", manifest, f"{directory}/{MANIFEST_NAME}")
+    validate_against(artifact, data, f"{directory}/{MANIFEST_NAME} (data)")
+    (Path(directory) / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
+    return manifest
+
+
+def read_manifest(directory: Path) -> dict:
+    """Parse and schema-check `directory/manifest.json` (no hash checks); ArtifactError if bad."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise ArtifactError(f"{directory}: no such artifact directory")
+    path = directory / MANIFEST_NAME
+    if not path.is_file():
+        raise ArtifactError(f"{path}: missing; {directory} is not an igavatar artifact (or it was not finished)")
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ArtifactError(f"{path}: not valid JSON ({exc}); re-create the artifact") from exc
+    validate_against("manifest", manifest, str(path))
+    return manifest
+
+
+def read_artifact(directory: Path, expected: str | None = None, *, check_hashes: bool = True) -> dict:
+    """Read an artifact's manifest and check kind, major version, schema and file hashes.
+
+    Args:
+        directory: the artifact directory.
+        expected: the artifact kind the caller needs, or None to accept any kind.
+        check_hashes: verify the sha256 of every listed output file.
+    Returns:
+        the manifest dict.
+    Raises:
+        ArtifactError naming the file and the stage that makes the artifact.
+    """
+    directory = Path(directory)
+    manifest = read_manifest(directory)
+    kind = manifest["artifact"]
+    maker = PRODUCED_BY[kind]
+    if expected is not None and kind != expected:
+        raise ArtifactError(
+            f"{directory} is a {kind} artifact (made by `{maker}`), "
+            f"but this step needs a {expected} artifact made by `{PRODUCED_BY[expected]}`"
+        )
+    major = manifest["schema_version"].split(".")[0]
+    current_major = SCHEMA_VERSIONS[kind].split(".")[0]
+    if major != current_major:
+        raise ArtifactError(
+            f"{directory / MANIFEST_NAME}: {kind} schema version {manifest['schema_version']} is not readable by "
+            f"igavatar {__version__} (needs {current_major}.x); re-run `{maker}`"
+        )
+    validate_against(kind, manifest["data"], f"{directory / MANIFEST_NAME} (data)")
+    if check_hashes:
+        for output in manifest["outputs"]:
+            path = directory / output["path"]
+            if not path.is_file():
+                raise ArtifactError(f"{path}: missing from the {kind} artifact; re-run `{maker}`")
+            if sha256_file(path) != output["sha256"]:
+                raise ArtifactError(
+                    f"{path}: sha256 mismatch (the file was modified or corrupted); re-run `{maker}`"
+                )
+    return manifest
+
+
+def host_description() -> str:
+    """One-line description of the host, for manifests and reports."""
+    return f"{platform.system()} {platform.machine()} python {platform.python_version()}"

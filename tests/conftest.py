@@ -1,0 +1,54 @@
+"""Shared fixtures: small hand-made captures and a CLI runner.
+
+    def test_x(tiny_skeleton_capture): ...   # a valid capture v1 directory (body model 'skeleton')
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+
+def write_tiny_capture(root: Path, n_frames: int = 3, size: int = 16, body_model: str = "skeleton") -> Path:
+    """Write a minimal, valid capture v1 (skeleton body model) with solid-colour images and masks."""
+    root.mkdir(parents=True, exist_ok=True)
+    frames = [f"f{i:03d}" for i in range(n_frames)]
+    (root / "images").mkdir()
+    (root / "masks").mkdir()
+    for i, name in enumerate(frames):
+        image = np.full((size, size, 3), 40 * i, np.uint8)
+        mask = np.zeros((size, size), np.uint8)
+        mask[size // 4 : 3 * size // 4, size // 4 : 3 * size // 4] = 255
+        cv2.imwrite(str(root / "images" / f"{name}.png"), image)
+        cv2.imwrite(str(root / "masks" / f"{name}.png"), mask)
+    K = np.array([[size, 0, size / 2], [0, size, size / 2], [0, 0, 1]], np.float64)
+    w2c = np.eye(4)
+    w2c[2, 3] = 3.0
+    np.savez(root / "cameras.npz", K=K, w2c=w2c, height=size, width=size)
+    parents = np.array([-1, 0, 1], np.int64)
+    rest = np.array([[0, 0, 0], [0, 0.3, 0], [0, 0.6, 0]], np.float64)
+    np.savez(
+        root / "poses.npz", parents=parents, rest_joints=rest,
+        rotvecs=np.zeros((n_frames, 3, 3)), transl=np.zeros((n_frames, 3)),
+    )
+    meta = {
+        "format": "igavatar-capture", "version": 1, "body_model": body_model, "frames": frames,
+        "splits": {"train": frames[:-1], "test": frames[-1:]},
+    }
+    (root / "capture.json").write_text(json.dumps(meta))
+    return root
+
+
+@pytest.fixture
+def tiny_skeleton_capture(tmp_path: Path) -> Path:
+    return write_tiny_capture(tmp_path / "capture")
+
+
+@pytest.fixture
+def cli_runner() -> CliRunner:
+    return CliRunner()
