@@ -1,0 +1,186 @@
+"""Tests of the canonical skinning-weight grid: box, construction, lookups, blended transforms."""
+
+import numpy as np
+import pytest
+import torch
+
+from igavatar.errors import InputError
+from igavatar.skinning.grid import (
+    apply_affine,
+    blended_transform_grid,
+    build_skinning_grid,
+    canonical_grid_box,
+    grid_point_positions,
+    inside_grid,
+    sample_blended_transforms,
+    sample_grid,
+    sample_skinning_weights,
+    smooth_weights_grid,
+)
+
+
+def _smooth_weights(points: np.ndarray, num_joints: int = 5) -> np.ndarray:
+    """A smooth synthetic skinning weighting: softmax of fixed low-frequency functions."""
+    rng = np.random.default_rng(7)
+    slopes = rng.normal(size=(3, num_joints)) * 1.5
+    logits = points @ slopes + 0.3 * np.sin(2.0 * points[:, :1] + np.arange(num_joints))
+    logits -= logits.max(axis=1, keepdims=True)
+    weights = np.exp(logits)
+    return weights / weights.sum(axis=1, keepdims=True)
+
+
+def _trilinear_reference(grid: torch.Tensor, box_min, box_max, point) -> torch.Tensor:
+    """Naive trilinear interpolation with explicit D<->z, H<->y, W<->x indexing."""
+    num_d, num_h, num_w = grid.shape[1:]
+    sizes = torch.tensor([num_w, num_h, num_d], dtype=torch.float64)
+    continuous = (point.double() - box_min.double()) / (box_max.double() - box_min.double()) * (sizes - 1)
+    continuous = torch.minimum(continuous.clamp_min(0.0), sizes - 1)
+    lower = torch.minimum(continuous.floor(), sizes - 2).long()
+    frac = continuous - lower
+    value = torch.zeros(grid.shape[0], dtype=torch.float64)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                weight = (
+                    (frac[0] if dx else 1 - frac[0])
+                    * (frac[1] if dy else 1 - frac[1])
+                    * (frac[2] if dz else 1 - frac[2])
+                )
+                value += weight * grid[:, lower[2] + dz, lower[1] + dy, lower[0] + dx].double()
+    return value
+
+
+def test_canonical_grid_box_cube_and_squeezed_depth():
+    vertices = torch.tensor([[-0.3, -0.1, 0.0], [0.5, 0.2, 1.6], [0.1, 0.0, 0.4]])
+    box_min, box_max = canonical_grid_box(vertices)
+    centre = torch.tensor([0.1, 0.05, 0.8])
+    half = 0.8 * 1.2  # largest half-extent is along z (1.6 / 2)
+    torch.testing.assert_close(box_min, centre - half)
+    torch.testing.assert_close(box_max, centre + half)
+
+    box_min, box_max = canonical_grid_box(vertices.numpy(), squeeze_axis=1, squeeze=4.0)
+    torch.testing.assert_close((box_max - box_min) / 2, torch.tensor([half, half / 4, half]))
+    torch.testing.assert_close((box_max + box_min) / 2, centre)
+
+
+def test_canonical_grid_box_rejects_bad_input():
+    with pytest.raises(InputError, match="vertices_canonical"):
+        canonical_grid_box(torch.zeros(4, 2))
+    with pytest.raises(InputError, match="squeeze_axis"):
+        canonical_grid_box(torch.rand(4, 3), squeeze_axis=3)
+
+
+def test_grid_point_positions_follow_d_z_h_y_w_x():
+    box_min, box_max = torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.0, 3.0, 6.0])
+    positions = grid_point_positions(box_min, box_max, (5, 3, 2))
+    assert positions.shape == (5, 3, 2, 3)
+    torch.testing.assert_close(positions[0, 0, 0], box_min)
+    torch.testing.assert_close(positions[-1, -1, -1], box_max)
+    torch.testing.assert_close(positions[1, 0, 0], torch.tensor([0.0, 1.0, 3.0]))  # D steps z
+    torch.testing.assert_close(positions[0, 1, 0], torch.tensor([0.0, 2.0, 2.0]))  # H steps y
+    torch.testing.assert_close(positions[0, 0, 1], torch.tensor([1.0, 1.0, 2.0]))  # W steps x
+
+
+def test_built_grid_is_a_partition_of_unity_everywhere():
+    rng = np.random.default_rng(0)
+    vertices = rng.uniform(-0.5, 0.5, size=(400, 3)) * [1.0, 0.3, 2.0]
+    weights = rng.dirichlet(np.full(6, 0.3), size=400)  # rough, to stress the construction
+    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=1)
+    grid = build_skinning_grid(vertices, weights, box_min, box_max, (12, 6, 10), k=8, smoothing_iterations=3)
+    assert grid.shape == (6, 12, 6, 10) and grid.dtype == torch.float32
+    assert bool((grid >= 0).all())
+    torch.testing.assert_close(grid.sum(dim=0), torch.ones(12, 6, 10), atol=1e-6, rtol=0)
+    # Sampled anywhere (inside or outside the box) the weights stay a partition of unity.
+    points = torch.rand(300, 3) * 1.6 - 0.8
+    sampled = sample_skinning_weights(grid, box_min, box_max, points)
+    assert bool((sampled >= 0).all())
+    torch.testing.assert_close(sampled.sum(dim=1), torch.ones(300), atol=1e-5, rtol=0)
+
+
+def test_nearest_vertex_grid_without_smoothing_matches_brute_force():
+    rng = np.random.default_rng(1)
+    vertices = rng.uniform(-1, 1, size=(50, 3))
+    weights = rng.dirichlet(np.ones(4), size=50)
+    box_min, box_max = torch.tensor([-1.0, -1.0, -1.0]), torch.tensor([1.0, 1.0, 1.0])
+    grid = build_skinning_grid(vertices, weights, box_min, box_max, (4, 3, 5), k=1, smoothing_iterations=0)
+    positions = grid_point_positions(box_min.double(), box_max.double(), (4, 3, 5)).reshape(-1, 3).numpy()
+    nearest = np.argmin(((positions[:, None, :] - vertices[None]) ** 2).sum(-1), axis=1)
+    expected = torch.from_numpy(weights[nearest].T.reshape(4, 4, 3, 5)).float()
+    torch.testing.assert_close(grid, expected)
+
+
+def test_sampled_weights_reproduce_a_smooth_weighting_at_vertices():
+    rng = np.random.default_rng(2)
+    vertices = rng.uniform(-0.5, 0.5, size=(3000, 3))
+    weights = _smooth_weights(vertices)
+    box_min, box_max = canonical_grid_box(vertices, scale=1.1)
+    grid = build_skinning_grid(vertices, weights, box_min, box_max, (16, 16, 16), k=8, smoothing_iterations=2)
+    sampled = sample_skinning_weights(grid, box_min, box_max, torch.from_numpy(vertices).float())
+    error = (sampled - torch.from_numpy(weights).float()).abs()
+    assert float(error.mean()) < 0.01
+    assert float(error.max()) < 0.06
+
+
+def test_smoothing_keeps_constant_fields_and_the_simplex():
+    constant = torch.tensor([0.2, 0.5, 0.3])[:, None, None, None].expand(3, 4, 5, 6).contiguous()
+    torch.testing.assert_close(smooth_weights_grid(constant, 4), constant)
+    spikes = torch.zeros(2, 5, 5, 5)
+    spikes[0] = 1.0
+    spikes[:, 2, 2, 2] = torch.tensor([0.0, 1.0])
+    smoothed = smooth_weights_grid(spikes, 2)
+    assert bool((smoothed >= 0).all())
+    torch.testing.assert_close(smoothed.sum(0), torch.ones(5, 5, 5))
+    assert 0.0 < float(smoothed[1, 2, 2, 2]) < 1.0  # the spike spread out
+
+
+def test_sample_grid_matches_naive_trilinear_reference():
+    torch.manual_seed(0)
+    grid = torch.rand(3, 4, 5, 6)
+    box_min, box_max = torch.tensor([-1.0, 0.0, 0.5]), torch.tensor([2.0, 1.0, 1.5])
+    points = box_min + torch.rand(40, 3) * (box_max - box_min)
+    sampled = sample_grid(grid, box_min, box_max, points)
+    expected = torch.stack([_trilinear_reference(grid, box_min, box_max, p) for p in points]).float()
+    torch.testing.assert_close(sampled, expected, atol=1e-5, rtol=0)
+    # Voxel sample positions return the stored values exactly.
+    positions = grid_point_positions(box_min, box_max, (4, 5, 6)).reshape(-1, 3)
+    at_voxels = sample_grid(grid, box_min, box_max, positions)
+    torch.testing.assert_close(at_voxels, grid.reshape(3, -1).T, atol=1e-5, rtol=0)
+
+
+def test_inside_grid():
+    box_min, box_max = torch.zeros(3), torch.ones(3)
+    points = torch.tensor([[0.5, 0.5, 0.5], [0.0, 1.0, 0.2], [1.01, 0.5, 0.5], [0.5, -0.1, 0.5]])
+    assert inside_grid(box_min, box_max, points).tolist() == [True, True, False, False]
+
+
+def _random_rigid(num: int, generator: torch.Generator) -> torch.Tensor:
+    q, _ = torch.linalg.qr(torch.randn(num, 3, 3, generator=generator))
+    q = q * torch.sign(torch.linalg.det(q))[:, None, None]
+    transforms = torch.eye(4).repeat(num, 1, 1)
+    transforms[:, :3, :3] = q
+    transforms[:, :3, 3] = torch.randn(num, 3, generator=generator)
+    return transforms
+
+
+def test_blended_lookup_equals_direct_lbs_blend():
+    generator = torch.Generator().manual_seed(3)
+    num_joints = 7
+    grid = torch.rand(num_joints, 6, 5, 8, generator=generator)
+    grid = grid / grid.sum(0, keepdim=True)
+    bones = _random_rigid(num_joints, generator)
+    box_min, box_max = torch.tensor([-1.0, -0.5, -1.0]), torch.tensor([1.0, 0.5, 1.0])
+    points = torch.rand(200, 3, generator=generator) * 2.4 - 1.2  # some outside (border padding)
+    blended = blended_transform_grid(grid, bones)
+    assert blended.shape == (12, 6, 5, 8)
+    transforms = sample_blended_transforms(blended, box_min, box_max, points)
+    weights = sample_skinning_weights(grid, box_min, box_max, points)
+    direct = torch.einsum("pj,jrc->prc", weights, bones[:, :3, :])
+    torch.testing.assert_close(transforms, direct, atol=1e-5, rtol=1e-5)
+    posed_per_bone = torch.einsum("jrc,pc->pjr", bones[:, :3, :3], points) + bones[None, :, :3, 3]
+    x_posed_direct = (weights[:, :, None] * posed_per_bone).sum(1)
+    torch.testing.assert_close(apply_affine(transforms, points), x_posed_direct, atol=1e-5, rtol=1e-5)
+
+
+def test_blended_transform_grid_rejects_joint_mismatch():
+    with pytest.raises(InputError, match="bone_transforms"):
+        blended_transform_grid(torch.rand(4, 2, 2, 2), torch.eye(4).repeat(5, 1, 1))
