@@ -1,0 +1,359 @@
+"""Training losses of InstantGeoAvatar (paper Eq. 7 and 9) and the Table 5 ablation regularisers.
+
+    terms = {"rgb": rgb_loss(out.rgb, rgb_gt), "smooth": smooth_loss_along_ray(out.gradient, out.valid)}
+    loss = total_loss(terms, LossWeights())   # out: igavatar.render.volume.RenderOutput
+
+Pure functions of tensors: no model, renderer or deformer imports. Per-sample inputs use the
+renderer's padded layout: ``gradients (R, S, 3)`` with ``valid (R, S)``; only valid samples count.
+
+Choices (see each docstring): ``rgb_loss`` defaults to MSE, as the released InstantGeoAvatar code
+(the paper only says "photometric loss"; InstantAvatar used Huber with delta 0.1, available as
+``kind="huber"``). ``alpha_loss`` defaults to L1 as the paper states (the release uses MSE).
+``eikonal_loss`` averages over valid samples only (the release also averages the dummy gradients
+of empty slots). ``smooth_loss_along_ray`` is Eq. 9 with the literal ``1 / N_s^i`` normaliser.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = [
+    "LossWeights",
+    "SdfFn",
+    "alpha_loss",
+    "curvature_loss",
+    "eikonal_loss",
+    "finite_difference_eikonal",
+    "finite_difference_gradient",
+    "finite_difference_sdf",
+    "finite_difference_terms",
+    "linear_warmup",
+    "rgb_loss",
+    "smooth_loss_along_ray",
+    "smooth_loss_neighbour_rays",
+    "total_loss",
+]
+
+SdfFn = Callable[[Tensor], Tensor]
+"""x (P, 3) -> signed distance (P,), positive outside; used by the finite-difference regularisers."""
+
+_NORMAL_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the loss terms; defaults are the paper's (Eq. 7 and Sec. 4)."""
+
+    rgb: float = 10.0
+    """lambda_rgb, photometric term."""
+    alpha: float = 0.1
+    """lambda_alpha, L1 between rendered opacity and the mask."""
+    eikonal: float = 0.1
+    """lambda_Eik with analytic gradients (the release uses 0.01; the paper 0.1)."""
+    smooth: float = 1.0
+    """lambda_smooth, along-ray normal smoothness (paper: good anywhere in [0.5, 1.5])."""
+    fd_eikonal: float = 0.1
+    """Ablation: eikonal on finite-difference gradients (Neuralangelo), replacing ``eikonal``."""
+    curvature: float = 5e-4
+    """Ablation: Neuralangelo curvature term; scale it by :func:`linear_warmup` during warm-up."""
+
+
+def total_loss(terms: Mapping[str, Tensor], weights: LossWeights) -> Tensor:
+    """Weighted sum ``sum_k weights.k * terms[k]``; every key must be a LossWeights field.
+
+    Args:
+        terms: name -> scalar tensor.
+        weights: the weights.
+
+    Returns:
+        Scalar tensor.
+    """
+    names = {f.name for f in fields(LossWeights)}
+    unknown = sorted(set(terms) - names)
+    if unknown:
+        raise ValueError(f"total_loss: unknown terms {unknown}; known: {sorted(names)}")
+    if not terms:
+        raise ValueError("total_loss: no terms given")
+    return sum(getattr(weights, name) * value for name, value in terms.items())  # type: ignore[return-value]
+
+
+def rgb_loss(
+    rgb_pred: Tensor,
+    rgb_target: Tensor,
+    kind: Literal["mse", "l1", "huber"] = "mse",
+    huber_delta: float = 0.1,
+) -> Tensor:
+    """Photometric loss on composited colour.
+
+    Args:
+        rgb_pred, rgb_target: (R, 3) (or any equal shapes) in [0, 1]; the target must be
+            composited on the same background as the prediction.
+        kind: "mse" (released InstantGeoAvatar, default), "l1", or "huber" (InstantAvatar, delta 0.1).
+        huber_delta: Huber transition point.
+
+    Returns:
+        Scalar mean over all elements.
+    """
+    if rgb_pred.shape != rgb_target.shape:
+        raise ValueError(f"rgb_loss: prediction {tuple(rgb_pred.shape)} vs target {tuple(rgb_target.shape)}")
+    if kind == "mse":
+        return F.mse_loss(rgb_pred, rgb_target)
+    if kind == "l1":
+        return F.l1_loss(rgb_pred, rgb_target)
+    if kind == "huber":
+        return F.huber_loss(rgb_pred, rgb_target, delta=huber_delta)
+    raise ValueError(f"rgb_loss: kind must be 'mse', 'l1' or 'huber', got {kind!r}")
+
+
+def alpha_loss(opacity: Tensor, mask: Tensor, kind: Literal["l1", "mse"] = "l1") -> Tensor:
+    """Mask loss between rendered opacity and the foreground mask.
+
+    Args:
+        opacity: (R,) accumulated weights in [0, 1].
+        mask: (R,) target in [0, 1] (bool accepted).
+        kind: "l1" (paper, default) or "mse" (released code).
+
+    Returns:
+        Scalar mean.
+    """
+    if opacity.shape != mask.shape:
+        raise ValueError(f"alpha_loss: opacity {tuple(opacity.shape)} vs mask {tuple(mask.shape)}")
+    mask = mask.to(opacity.dtype)
+    if kind == "l1":
+        return F.l1_loss(opacity, mask)
+    if kind == "mse":
+        return F.mse_loss(opacity, mask)
+    raise ValueError(f"alpha_loss: kind must be 'l1' or 'mse', got {kind!r}")
+
+
+def eikonal_loss(gradients: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Eikonal term ``mean (|grad d| - 1)^2`` over valid samples only.
+
+    Args:
+        gradients: (M, 3) SDF gradients of valid samples, or (..., 3) together with ``valid``.
+        valid: None, or (...) bool selecting the samples that count (e.g. RenderOutput.valid).
+
+    Returns:
+        Scalar; 0 when there are no samples.
+    """
+    if gradients.shape[-1] != 3:
+        raise ValueError(f"eikonal_loss: gradients have shape {tuple(gradients.shape)}, expected (..., 3)")
+    if valid is not None:
+        if valid.shape != gradients.shape[:-1]:
+            raise ValueError(
+                f"eikonal_loss: valid {tuple(valid.shape)} does not match gradients {tuple(gradients.shape)}"
+            )
+        gradients = gradients[valid]
+    gradients = gradients.reshape(-1, 3)
+    if gradients.shape[0] == 0:
+        return gradients.sum() * 0.0
+    return ((torch.linalg.vector_norm(gradients, dim=-1) - 1.0) ** 2).mean()
+
+
+def _pair_term(n_a: Tensor, n_b: Tensor) -> Tensor:
+    """Eq. 9 summand for unit normals at the two ends of an interval: (...) from (..., 3) pairs."""
+    n_mid = 0.5 * (n_a + n_b)
+    return torch.linalg.vector_norm(n_mid - n_a, dim=-1) + torch.linalg.vector_norm(n_mid - n_b, dim=-1)
+
+
+def smooth_loss_along_ray(
+    gradients: Tensor,
+    valid: Tensor,
+    normalization: Literal["samples", "pairs"] = "samples",
+) -> Tensor:
+    """Paper Eq. 9: normals at consecutive valid samples of each ray should agree.
+
+    ``n_hat_j = g_j / |g_j|``, ``n_bar_j = (n_hat_j + n_hat_{j+1}) / 2`` and each pair adds
+    ``|n_bar_j - n_hat_j| + |n_bar_j - n_hat_{j+1}|`` (which equals ``|n_hat_{j+1} - n_hat_j|``).
+    Pairs are consecutive in the ray's order of *valid* samples: two valid samples separated by
+    invalid slots (skipped empty space) form a pair, exactly as in a packed sample layout, so the
+    result is the same before and after :func:`igavatar.render.sampler.compact_samples`.
+
+    Normalisation: per ray, the pair sum is divided by ``N_s^i`` = its number of valid samples,
+    as Eq. 9 writes (``normalization="pairs"`` divides by ``N_s^i - 1`` instead, a true mean per
+    pair). The result is the mean over rays with at least two valid samples; rays with fewer have
+    no pair and are not counted, so the value does not depend on how many rays miss the body.
+
+    Args:
+        gradients: (R, S, 3) SDF gradients (or normals; only directions matter).
+        valid: (R, S) bool.
+        normalization: "samples" (Eq. 9, default) or "pairs".
+
+    Returns:
+        Scalar; 0 when no ray has a pair.
+    """
+    if gradients.ndim != 3 or gradients.shape[-1] != 3 or valid.shape != gradients.shape[:2]:
+        raise ValueError(
+            f"smooth_loss_along_ray: gradients {tuple(gradients.shape)} and valid "
+            f"{tuple(valid.shape)} must be (R, S, 3) and (R, S)"
+        )
+    if normalization not in ("samples", "pairs"):
+        raise ValueError(
+            f"smooth_loss_along_ray: normalization must be 'samples' or 'pairs', got {normalization!r}"
+        )
+    r, s, _ = gradients.shape
+    valid = valid.bool()
+    n_hat = F.normalize(gradients, dim=-1, eps=_NORMAL_EPS)
+    # Pack each ray's valid samples to the front in order (slot = number of valid samples
+    # before it; invalid ones go to a spare last column), so consecutive valid samples are
+    # adjacent whatever gaps separated them.
+    num_valid = valid.sum(dim=1)
+    dest = torch.where(valid, torch.cumsum(valid, dim=1) - 1, s)
+    n_packed = n_hat.new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), n_hat)[:, :s]
+    valid_packed = torch.arange(s, device=valid.device)[None, :] < num_valid[:, None]
+    pair_valid = valid_packed[:, :-1] & valid_packed[:, 1:]  # (R, S-1)
+    term = _pair_term(n_packed[:, :-1], n_packed[:, 1:])
+    per_ray_sum = torch.where(pair_valid, term, torch.zeros_like(term)).sum(dim=1)
+    has_pair = num_valid >= 2
+    if not bool(has_pair.any()):
+        return gradients.sum() * 0.0
+    denom = num_valid if normalization == "samples" else num_valid - 1
+    return (per_ray_sum[has_pair] / denom[has_pair].to(per_ray_sum.dtype)).mean()
+
+
+def smooth_loss_neighbour_rays(
+    gradients: Tensor, valid: Tensor, include_vertical: bool = False
+) -> Tensor:
+    """Screen-space variant (released code): same sample slot on neighbouring pixels of a patch.
+
+    Pairs are (pixel (y, x), pixel (y, x + 1)) at the same slot s, and with
+    ``include_vertical`` also (y, x) with (y + 1, x); both samples must be valid. Pairs never cross
+    a patch row or a patch boundary (the release's flattened layout paired the last pixel of a
+    row with the first of the next, and across patches). Each pair adds the Eq. 9 summand; the
+    result is the mean over valid pairs (the release divided by all slots). Use the uncompacted
+    sample layout: only then does slot s mean about the same depth on neighbouring rays.
+
+    Args:
+        gradients: (..., Hp, Wp, S, 3) per-sample gradients of patches of rays.
+        valid: (..., Hp, Wp, S) bool.
+        include_vertical: also pair vertically adjacent pixels.
+
+    Returns:
+        Scalar; 0 when there is no valid pair.
+    """
+    if gradients.ndim < 4 or gradients.shape[-1] != 3 or valid.shape != gradients.shape[:-1]:
+        raise ValueError(
+            f"smooth_loss_neighbour_rays: gradients {tuple(gradients.shape)} and valid "
+            f"{tuple(valid.shape)} must be (..., Hp, Wp, S, 3) and (..., Hp, Wp, S)"
+        )
+    valid = valid.bool()
+    n_hat = F.normalize(gradients, dim=-1, eps=_NORMAL_EPS)
+    total = gradients.new_zeros(())
+    count = 0
+    # (normal a, normal b, both valid) for each neighbour direction; slicing stays inside a patch.
+    pairs = [(n_hat[..., :, :-1, :, :], n_hat[..., :, 1:, :, :], valid[..., :, :-1, :] & valid[..., :, 1:, :])]
+    if include_vertical:
+        pairs.append(
+            (n_hat[..., :-1, :, :, :], n_hat[..., 1:, :, :, :], valid[..., :-1, :, :] & valid[..., 1:, :, :])
+        )
+    for n_a, n_b, pair_valid in pairs:
+        term = _pair_term(n_a, n_b)
+        total = total + torch.where(pair_valid, term, torch.zeros_like(term)).sum()
+        count += int(pair_valid.sum())
+    if count == 0:
+        return gradients.sum() * 0.0
+    return total / count
+
+
+def finite_difference_sdf(sdf_fn: SdfFn, x: Tensor, eps: float) -> tuple[Tensor, Tensor]:
+    """SDF at the 6 axis neighbours ``x +- eps e_k``, in one batched call of ``sdf_fn``.
+
+    Args:
+        sdf_fn: x (P, 3) -> (P,).
+        x: (M, 3) points (canonical space for the avatar).
+        eps: step in the units of x.
+
+    Returns:
+        sdf_plus (M, 3) with column k = d(x + eps e_k), sdf_minus (M, 3) with d(x - eps e_k).
+    """
+    if x.ndim != 2 or x.shape[-1] != 3:
+        raise ValueError(f"finite_difference_sdf: x has shape {tuple(x.shape)}, expected (M, 3)")
+    if eps <= 0:
+        raise ValueError(f"finite_difference_sdf: eps must be > 0, got {eps}")
+    m = x.shape[0]
+    offsets = torch.eye(3, device=x.device, dtype=x.dtype) * eps  # (3, 3), row k = eps e_k
+    points = torch.cat([x[:, None, :] + offsets, x[:, None, :] - offsets], dim=1)  # (M, 6, 3)
+    values = sdf_fn(points.reshape(-1, 3))
+    if values.shape != (6 * m,):
+        raise ValueError(f"finite_difference_sdf: sdf_fn returned {tuple(values.shape)}, expected ({6 * m},)")
+    values = values.reshape(m, 6)
+    return values[:, :3], values[:, 3:]
+
+
+def finite_difference_gradient(sdf_fn: SdfFn, x: Tensor, eps: float) -> Tensor:
+    """Central-difference SDF gradient (Neuralangelo's numerical gradient), (M, 3) from x (M, 3)."""
+    plus, minus = finite_difference_sdf(sdf_fn, x, eps)
+    return (plus - minus) / (2.0 * eps)
+
+
+def finite_difference_eikonal(sdf_fn: SdfFn, x: Tensor, eps: float) -> Tensor:
+    """Eikonal term on numerical gradients (6 extra SDF evaluations per point).
+
+    Args:
+        sdf_fn: x (P, 3) -> (P,).
+        x: (M, 3) valid sample points (canonical space).
+        eps: finite-difference step (Neuralangelo ties it to the finest active hash level).
+
+    Returns:
+        Scalar ``mean (|grad_fd d| - 1)^2``; 0 for M = 0.
+    """
+    if x.shape[0] == 0:
+        return x.sum() * 0.0
+    return eikonal_loss(finite_difference_gradient(sdf_fn, x, eps))
+
+
+def curvature_loss(sdf_fn: SdfFn, x: Tensor, eps: float, sdf_at_x: Tensor | None = None) -> Tensor:
+    """Neuralangelo curvature term: mean |Laplacian d| by central differences of step eps.
+
+    ``lap(x) = sum_k (d(x + eps e_k) + d(x - eps e_k) - 2 d(x)) / eps^2``. Paper weight ~5e-4 with
+    a linear warm-up (:func:`linear_warmup`).
+
+    Args:
+        sdf_fn: x (P, 3) -> (P,).
+        x: (M, 3) points.
+        eps: finite-difference step.
+        sdf_at_x: (M,) d(x) if already computed (saves one evaluation per point).
+
+    Returns:
+        Scalar; 0 for M = 0.
+    """
+    return finite_difference_terms(sdf_fn, x, eps, sdf_at_x)[1]
+
+
+def finite_difference_terms(
+    sdf_fn: SdfFn, x: Tensor, eps: float, sdf_at_x: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Numerical eikonal and curvature terms from one shared set of 6 neighbour evaluations.
+
+    Args:
+        sdf_fn, x, eps, sdf_at_x: as in :func:`curvature_loss`.
+
+    Returns:
+        (eikonal, curvature) scalars.
+    """
+    if x.shape[0] == 0:
+        zero = x.sum() * 0.0
+        return zero, zero
+    plus, minus = finite_difference_sdf(sdf_fn, x, eps)
+    if sdf_at_x is None:
+        sdf_at_x = sdf_fn(x)
+    if sdf_at_x.shape != (x.shape[0],):
+        raise ValueError(
+            f"finite_difference_terms: sdf_at_x has shape {tuple(sdf_at_x.shape)}, expected ({x.shape[0]},)"
+        )
+    gradient = (plus - minus) / (2.0 * eps)
+    laplacian = (plus + minus - 2.0 * sdf_at_x[:, None]).sum(dim=-1) / eps**2
+    return eikonal_loss(gradient), laplacian.abs().mean()
+
+
+def linear_warmup(step: int, warmup_steps: int) -> float:
+    """Weight factor rising linearly from 0 at step 0 to 1 at ``warmup_steps`` (then 1)."""
+    if warmup_steps <= 0:
+        return 1.0
+    return min(1.0, max(0.0, step / warmup_steps))

@@ -1,0 +1,322 @@
+"""Alpha compositing of ray samples through a field given as a callable (no model imports).
+
+    out = render_rays(samples, field_fn, background)          # training: noise background
+    image = render_image(K, w2c, H, W, field_fn, box_min, box_max, occupied_fn=grid.is_occupied)
+
+``field_fn`` maps the **valid** sample positions only, flattened to (M, 3), to a
+:class:`FieldOutput` (or a mapping with the same keys). It is free to warp posed points to
+canonical space, run the SDF and colour networks and turn the SDF into density; the renderer only
+composites. Compositing (paper Sec. 3.2): ``alpha_i = 1 - exp(-sigma_i * delta_i)``, transmittance
+``T_i = prod_{j<i} (1 - alpha_j) = exp(-sum_{j<i} sigma_j delta_j)`` (computed as an exclusive
+cumulative sum in log space, which stays accurate where the product underflows), weights
+``w_i = alpha_i T_i``, colour ``sum_i w_i c_i + (1 - sum_i w_i) * background``. Invalid samples have
+sigma * delta = 0, so they neither add colour nor attenuate later samples.
+
+``delta_i`` is the sample's interval length along the posed-space ray (as the released code
+does; the paper's notation writes canonical points). ``sigma`` must be >= 0: training-time density
+noise belongs inside ``field_fn``, clamped there.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from igavatar.render.rays import pixel_grid, pixel_rays, rays_in_box
+from igavatar.render.sampler import OccupiedFn, RaySamples, sample_along_rays
+
+__all__ = ["FieldFn", "FieldOutput", "ImageRender", "RenderOutput", "render_image", "render_rays"]
+
+
+@dataclass(frozen=True)
+class FieldOutput:
+    """What a field callable returns for M points.
+
+    Attributes:
+        sigma: (M,) non-negative density.
+        rgb: (M, 3) colour in [0, 1].
+        gradient: (M, 3) or None; SDF gradient (analytic), used by the eikonal and smoothness
+            losses; also gives the normal map when ``normal`` is None.
+        normal: (M, 3) or None; unit normal for the normal map when it differs from the
+            normalised gradient (e.g. gradient in canonical space, normal rotated to posed).
+        sdf: (M,) or None; signed distance, passed through for losses that want it.
+    """
+
+    sigma: Tensor
+    rgb: Tensor
+    gradient: Tensor | None = None
+    normal: Tensor | None = None
+    sdf: Tensor | None = None
+
+    @staticmethod
+    def coerce(value: FieldOutput | Mapping[str, Tensor], num_points: int) -> FieldOutput:
+        """Accept a FieldOutput or a mapping with keys sigma, rgb[, gradient, normal, sdf]; check shapes."""
+        if isinstance(value, Mapping):
+            unknown = set(value) - {"sigma", "rgb", "gradient", "normal", "sdf"}
+            if unknown or "sigma" not in value or "rgb" not in value:
+                raise ValueError(
+                    f"field_fn returned keys {sorted(value)}; expected sigma, rgb and optionally "
+                    "gradient, normal, sdf"
+                )
+            value = FieldOutput(**value)
+        if not isinstance(value, FieldOutput):
+            raise TypeError(f"field_fn returned {type(value).__name__}, expected FieldOutput or a mapping")
+        m = num_points
+        expected = {"sigma": (m,), "rgb": (m, 3), "gradient": (m, 3), "normal": (m, 3), "sdf": (m,)}
+        for name, shape in expected.items():
+            tensor = getattr(value, name)
+            if tensor is not None and tuple(tensor.shape) != shape:
+                raise ValueError(f"field_fn returned {name} of shape {tuple(tensor.shape)}, expected {shape}")
+        return value
+
+
+FieldFn = Callable[[Tensor], FieldOutput | Mapping[str, Tensor]]
+"""x (M, 3) valid sample positions in the rays' frame -> FieldOutput for those M points."""
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """Composited pixels and the per-sample quantities the losses need.
+
+    Attributes:
+        rgb: (R, 3) colour composited on the background.
+        opacity: (R,) accumulated weight ``sum_i w_i`` (= 1 - final transmittance).
+        depth: (R,) expected termination distance ``sum_i w_i t_i`` (0 contribution from the
+            background; divide by opacity for the depth of the surface alone).
+        normal: (R, 3) ``sum_i w_i n_i`` with unit per-sample normals (length ~ opacity);
+            zeros when the field returns neither normal nor gradient.
+        weights: (R, S) compositing weights, zero on invalid or terminated samples.
+        sigma: (R, S) densities, zero on invalid samples.
+        t: (R, S) sample distances.
+        valid: (R, S) samples the field was evaluated at (with early termination: minus the
+            samples skipped after the ray became opaque).
+        gradient: (R, S, 3) or None; the field's gradient, zeros on invalid samples. The eikonal
+            term takes ``gradient[valid]`` (M, 3); the smoothness term takes (gradient, valid).
+            None only when the field returned no gradient; all zeros when it was never called.
+        sdf: (R, S) or None; zeros on invalid samples (same None rule as ``gradient``).
+    """
+
+    rgb: Tensor
+    opacity: Tensor
+    depth: Tensor
+    normal: Tensor
+    weights: Tensor
+    sigma: Tensor
+    t: Tensor
+    valid: Tensor
+    gradient: Tensor | None
+    sdf: Tensor | None
+
+
+def _scatter(values: Tensor, mask: Tensor) -> Tensor:
+    """Place (M, ...) values at the True slots of mask (R, S) in a zero (R, S, ...) tensor, differentiably."""
+    full = values.new_zeros((*mask.shape, *values.shape[1:]))
+    full[mask] = values
+    return full
+
+
+def render_rays(
+    samples: RaySamples,
+    field_fn: FieldFn,
+    background: Tensor,
+    *,
+    early_stop_transmittance: float | None = None,
+    march_chunk: int = 32,
+) -> RenderOutput:
+    """Volume-render R rays from their samples.
+
+    Args:
+        samples: RaySamples (R, S) from :func:`sample_along_rays`.
+        field_fn: x (M, 3) -> FieldOutput, called on the valid samples only (not called when
+            there are none, in which case every ray shows the background).
+        background: (R, 3) or (3,) colour behind the subject (random noise in training, white
+            at eval).
+        early_stop_transmittance: None renders all samples (training). A threshold (1e-4 at
+            eval) marches the samples ``march_chunk`` slots at a time and stops evaluating a ray
+            once its transmittance falls below it; weights of samples with T_i below it are
+            zeroed, which changes the colour by at most the threshold.
+        march_chunk: slots per step of that march.
+
+    Returns:
+        RenderOutput.
+    """
+    if early_stop_transmittance is not None and not 0.0 < early_stop_transmittance < 1.0:
+        raise ValueError(
+            f"render_rays: early_stop_transmittance must be in (0, 1) or None, got {early_stop_transmittance}"
+        )
+    if background.shape not in ((3,), (samples.valid.shape[0], 3)):
+        raise ValueError(
+            f"render_rays: background has shape {tuple(background.shape)}, expected (3,) or "
+            f"({samples.valid.shape[0]}, 3)"
+        )
+    valid_in = samples.valid
+    r, s = valid_in.shape
+    background = background.to(samples.t).expand(r, 3)
+    deltas = samples.deltas
+    chunk = s if early_stop_transmittance is None else max(1, int(march_chunk))
+
+    log_t_run = samples.t.new_zeros(r)  # log transmittance before the current chunk
+    sigma_parts, rgb_parts, weight_parts, valid_parts = [], [], [], []
+    grad_parts: list[Tensor] = []
+    normal_parts: list[Tensor] = []
+    sdf_parts: list[Tensor] = []
+    has_grad = has_sdf = None
+    log_threshold = None if early_stop_transmittance is None else math.log(early_stop_transmittance)
+    for s0 in range(0, s, chunk):
+        s1 = min(s, s0 + chunk)
+        active = valid_in[:, s0:s1]
+        if log_threshold is not None:
+            active = active & (log_t_run >= log_threshold)[:, None]
+        m = int(active.sum())
+        width = s1 - s0
+        if m > 0:
+            out = FieldOutput.coerce(field_fn(samples.positions[:, s0:s1][active]), m)
+            sigma_c = _scatter(out.sigma, active)
+            rgb_c = _scatter(out.rgb, active)
+            if has_grad is None:
+                has_grad, has_sdf = out.gradient is not None, out.sdf is not None
+            if has_grad != (out.gradient is not None) or has_sdf != (out.sdf is not None):
+                raise ValueError("field_fn must return the same optional outputs on every call")
+            grad_c = _scatter(out.gradient, active) if out.gradient is not None else None
+            sdf_c = _scatter(out.sdf, active) if out.sdf is not None else None
+            if out.normal is not None:
+                normal_c = _scatter(out.normal, active)
+            elif out.gradient is not None:
+                normal_c = _scatter(torch.nn.functional.normalize(out.gradient, dim=-1, eps=1e-12), active)
+            else:
+                normal_c = None
+        else:
+            sigma_c = samples.t.new_zeros((r, width))
+            rgb_c = samples.t.new_zeros((r, width, 3))
+            grad_c = normal_c = sdf_c = None
+
+        tau = sigma_c * deltas[:, s0:s1]  # optical depth of each sample; 0 where not active
+        cum = torch.cumsum(tau, dim=1)
+        log_t = log_t_run[:, None] - (cum - tau)  # exclusive cumulative sum
+        transmittance = torch.exp(log_t)
+        alpha = -torch.expm1(-tau)  # 1 - exp(-tau) without cancellation for small tau
+        weights_c = alpha * transmittance
+        if early_stop_transmittance is not None:
+            weights_c = torch.where(transmittance >= early_stop_transmittance, weights_c, 0.0)
+        log_t_run = log_t_run - cum[:, -1]
+
+        sigma_parts.append(sigma_c)
+        rgb_parts.append(rgb_c)
+        weight_parts.append(weights_c)
+        valid_parts.append(active)
+        grad_parts.append(grad_c if grad_c is not None else samples.t.new_zeros((r, width, 3)))
+        normal_parts.append(normal_c if normal_c is not None else samples.t.new_zeros((r, width, 3)))
+        sdf_parts.append(sdf_c if sdf_c is not None else samples.t.new_zeros((r, width)))
+
+    weights = torch.cat(weight_parts, dim=1)
+    rgb_samples = torch.cat(rgb_parts, dim=1)
+    normals = torch.cat(normal_parts, dim=1)
+    opacity = weights.sum(dim=1)
+    rgb = (weights[..., None] * rgb_samples).sum(dim=1) + (1.0 - opacity)[:, None] * background
+    return RenderOutput(
+        rgb=rgb,
+        opacity=opacity,
+        depth=(weights * samples.t).sum(dim=1),
+        normal=(weights[..., None] * normals).sum(dim=1),
+        weights=weights,
+        sigma=torch.cat(sigma_parts, dim=1),
+        t=samples.t,
+        valid=torch.cat(valid_parts, dim=1),
+        # A field never called (no valid sample) counts as having both, all zeros, so that the
+        # losses see an empty selection instead of a missing tensor.
+        gradient=torch.cat(grad_parts, dim=1) if has_grad is not False else None,
+        sdf=torch.cat(sdf_parts, dim=1) if has_sdf is not False else None,
+    )
+
+
+@dataclass(frozen=True)
+class ImageRender:
+    """Maps of one rendered image.
+
+    Attributes:
+        rgb: (H, W, 3) colour on the background.
+        opacity: (H, W) accumulated weight.
+        depth: (H, W) expected distance along the ray divided by opacity (surface depth; 0 where
+            opacity < 1e-6). Distance along the ray, not camera z.
+        normal: (H, W, 3) composited normal normalised to unit length (0 where opacity < 1e-6),
+            in the frame of the field's normals.
+    """
+
+    rgb: Tensor
+    opacity: Tensor
+    depth: Tensor
+    normal: Tensor
+
+
+def render_image(
+    K: Tensor,
+    w2c: Tensor,
+    height: int,
+    width: int,
+    field_fn: FieldFn,
+    box_min: Tensor,
+    box_max: Tensor,
+    *,
+    occupied_fn: OccupiedFn | None = None,
+    num_samples: int = 256,
+    background: Tensor | None = None,
+    chunk_rays: int = 4096,
+    early_stop_transmittance: float | None = 1e-4,
+) -> ImageRender:
+    """Render a full image in ray chunks (eval): midpoint samples, early termination, no graph kept.
+
+    Rays are cast through every pixel centre; near/far come from ``box_min``/``box_max`` (3,) in
+    the rays' frame. Autograd stays enabled so a field may compute analytic gradients, but each
+    chunk's outputs are detached so memory does not grow with the image.
+
+    Args:
+        K: (3, 3); w2c: (4, 4) in the frame of the box and the field.
+        height, width: image size in pixels.
+        field_fn: as in :func:`render_rays`.
+        box_min, box_max: (3,) bounds used for near/far.
+        occupied_fn: e.g. ``grid.is_occupied`` after ``grid.rebuild`` for this frame.
+        num_samples: bins per ray.
+        background: (3,) colour, default white.
+        chunk_rays: rays per :func:`render_rays` call.
+        early_stop_transmittance: see :func:`render_rays`.
+
+    Returns:
+        ImageRender with (H, W, ...) maps.
+    """
+    device = K.device
+    if background is None:
+        background = torch.ones(3, device=device)
+    pixels = pixel_grid(height, width, device=device)
+    origins, directions = pixel_rays(K, w2c, pixels)
+    rays = rays_in_box(origins, directions, box_min.to(origins), box_max.to(origins))
+    rgb, opacity, depth, normal = [], [], [], []
+    for start in range(0, rays.num_rays, chunk_rays):
+        sub = rays.slice(start, start + chunk_rays)
+        samples = sample_along_rays(sub, num_samples, occupied_fn, stratified=False)
+        out = render_rays(
+            samples,
+            field_fn,
+            background.to(origins),
+            early_stop_transmittance=early_stop_transmittance,
+        )
+        rgb.append(out.rgb.detach())
+        opacity.append(out.opacity.detach())
+        depth.append(out.depth.detach())
+        normal.append(out.normal.detach())
+    opacity_map = torch.cat(opacity)
+    seen = opacity_map > 1e-6
+    depth_map = torch.where(seen, torch.cat(depth) / opacity_map.clamp_min(1e-6), 0.0)
+    normal_map = torch.cat(normal)
+    normal_map = torch.where(
+        seen[:, None], torch.nn.functional.normalize(normal_map, dim=-1, eps=1e-12), 0.0
+    )
+    return ImageRender(
+        rgb=torch.cat(rgb).reshape(height, width, 3),
+        opacity=opacity_map.reshape(height, width),
+        depth=depth_map.reshape(height, width),
+        normal=normal_map.reshape(height, width, 3),
+    )
