@@ -1,0 +1,141 @@
+"""A capture's body, posed: the skeleton, per-frame joint rotations and (if any) a template mesh.
+
+    subject = subject_from_capture(capture, anny_cache=None, on_status=None)
+    canonical = canonicalize(subject)      # bone transforms, canonical template, boxes
+
+Each body model of capture v1 becomes the same `PosedSubject`, so everything downstream (skinning
+grid, dataset, training) is body-model agnostic. Importers of other layouts produce it too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from igavatar.body.rotations import invert_rigid, matrix_to_axis_angle
+from igavatar.body.skeleton import Skeleton, bone_transforms, forward_kinematics, linear_blend_skinning
+from igavatar.capture.capture_v1 import CaptureV1
+from igavatar.errors import NotAvailableError
+
+
+@dataclass(frozen=True)
+class PosedSubject:
+    """A body model evaluated for every frame of a capture (float32 CPU tensors).
+
+    Attributes:
+        body_model: 'anny', 'smpl' or 'skeleton'.
+        skeleton: joints (J) with rest positions.
+        local_rotations: (N, J, 3, 3) per-frame rotations relative to the rest pose.
+        root_translation: (N, 3) per-frame root translation in world coordinates.
+        canonical_rotations: (J, 3, 3) the canonical (star) pose relative to the rest pose.
+        template_vertices_rest: (V, 3) template in the rest pose, or None (no shape prior).
+        template_faces: (F, 3) int64, or None.
+        template_weights: (V, J) skinning weights of the template, or None.
+        description: JSON-able facts recorded in the dataset (e.g. the phenotype).
+    """
+
+    body_model: str
+    skeleton: Skeleton
+    local_rotations: torch.Tensor
+    root_translation: torch.Tensor
+    canonical_rotations: torch.Tensor
+    template_vertices_rest: torch.Tensor | None
+    template_faces: torch.Tensor | None
+    template_weights: torch.Tensor | None
+    description: dict
+
+
+@dataclass(frozen=True)
+class CanonicalSubject:
+    """What training needs from the body, in canonical space (float32 CPU tensors).
+
+    Attributes:
+        canonical_joints: (J, 3) joint positions in the canonical pose.
+        bone_transforms: (N, J, 4, 4) canonical -> posed world, per frame (root motion included).
+        posed_joints: (N, J, 3) world joint positions per frame.
+        pose_condition: (N, 3 * (J - 1)) axis-angle of the non-root joints (non-rigid input).
+        template_vertices: (V, 3) canonical template, or None.
+        posed_template_boxes: (N, 2, 3) world-space bounding boxes of the posed template (or of
+            the posed joints when there is no template), unpadded.
+    """
+
+    canonical_joints: torch.Tensor
+    bone_transforms: torch.Tensor
+    posed_joints: torch.Tensor
+    pose_condition: torch.Tensor
+    template_vertices: torch.Tensor | None
+    posed_template_boxes: torch.Tensor
+
+
+def _anny_subject(capture: CaptureV1, anny_cache: Path | None, on_status: Callable[[str], None] | None) -> PosedSubject:
+    from igavatar.body.anny_body import AnnyBody
+
+    labels = [str(label) for label in capture.poses["phenotype_labels"]]
+    values = [float(v) for v in capture.poses["phenotype_values"]]
+    body = AnnyBody.load(dict(zip(labels, values)), cache_dir=anny_cache, on_status=on_status)
+    pose_parameters = torch.as_tensor(capture.poses["pose_parameters"], dtype=torch.float64)
+    local_rotations, root_translation = body.local_rotations_from_pose_parameters(pose_parameters)
+    return PosedSubject(
+        body_model="anny",
+        skeleton=body.skeleton,
+        local_rotations=local_rotations.to(torch.float32),
+        root_translation=root_translation.to(torch.float32),
+        canonical_rotations=body.canonical_star_pose(),
+        template_vertices_rest=body.rest_vertices,
+        template_faces=body.faces,
+        template_weights=body.skinning_weights,
+        description={"phenotype": body.phenotype},
+    )
+
+
+def subject_from_capture(
+    capture: CaptureV1, anny_cache: Path | None = None, on_status: Callable[[str], None] | None = None
+) -> PosedSubject:
+    """Evaluate the capture's body model for every frame.
+
+    Raises:
+        NotAvailableError: for body models this version cannot pose yet.
+        BodyModelError / InputError: from the body model's adapter.
+    """
+    if capture.body_model == "anny":
+        return _anny_subject(capture, anny_cache, on_status)
+    raise NotAvailableError(
+        f"{capture.root / 'capture.json'}: body model '{capture.body_model}' is not supported by "
+        "preprocess yet (only 'anny' is); SMPL files and bare skeletons are planned"
+    )
+
+
+def canonicalize(subject: PosedSubject) -> CanonicalSubject:
+    """Bone transforms from the canonical pose to every frame, and the canonical template."""
+    skeleton = subject.skeleton
+    parents = skeleton.parents
+    rest = skeleton.rest_joints_tensor()
+    identity = torch.eye(3).expand(skeleton.num_joints, 3, 3)
+    global_rest = forward_kinematics(identity, rest, parents)
+    global_canonical = forward_kinematics(subject.canonical_rotations, rest, parents)
+    global_posed = forward_kinematics(subject.local_rotations, rest, parents, subject.root_translation)
+    transforms = bone_transforms(global_posed, global_canonical)
+
+    template = None
+    if subject.template_vertices_rest is not None:
+        rest_to_canonical = global_canonical @ invert_rigid(global_rest)
+        template = linear_blend_skinning(subject.template_vertices_rest, subject.template_weights, rest_to_canonical)
+        posed = linear_blend_skinning(template, subject.template_weights, transforms)
+        boxes = torch.stack((posed.amin(dim=1), posed.amax(dim=1)), dim=1)
+    else:
+        joints = global_posed[..., :3, 3]
+        boxes = torch.stack((joints.amin(dim=1), joints.amax(dim=1)), dim=1)
+
+    pose_condition = matrix_to_axis_angle(subject.local_rotations[:, 1:]).flatten(1)
+    return CanonicalSubject(
+        canonical_joints=global_canonical[:, :3, 3],
+        bone_transforms=transforms,
+        posed_joints=global_posed[..., :3, 3],
+        pose_condition=pose_condition,
+        template_vertices=template,
+        posed_template_boxes=boxes,
+    )

@@ -1,0 +1,139 @@
+"""preprocess on a small synthetic capture: a valid dataset whose arrays agree with the capture."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from igavatar.artifacts.manifest import read_artifact
+from igavatar.body.skeleton import linear_blend_skinning
+from igavatar.capture.capture_v1 import read_capture_v1
+from igavatar.capture.images import project_points, scale_intrinsics
+from igavatar.skinning.grid import sample_skinning_weights
+from igavatar_cli.main import app
+from stages.preprocess import PreprocessOptions, run_preprocess
+from stages.synth import SynthOptions, run_synth
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory) -> Path:
+    run = tmp_path_factory.mktemp("run")
+    run_synth(SynthOptions(out=run / "capture", resolution=96, train_frames=4, test_frames=3, seed=3))
+    run_preprocess(PreprocessOptions(capture=run / "capture", out=run / "dataset", max_size=64))
+    return run
+
+
+def test_dataset_validates_and_records_its_capture(small_run):
+    manifest = read_artifact(small_run / "dataset", expected="dataset")
+    data = manifest["data"]
+    assert data["body_model"] == "anny" and data["image_size"] == [64, 64]
+    assert len(data["frames"]) == 7 and len(data["splits"]["train"]) == 4
+    assert manifest["inputs"][0]["artifact"] == "capture"
+    assert {"body_model_s", "skinning_grid_s", "total_s"} <= set(manifest["timings"])
+    assert manifest["peak_memory"]["ram_bytes"] > 0
+    assert (small_run / "dataset" / "contact_sheet.png").stat().st_size > 1000
+
+
+def test_skinning_grid_is_a_partition_of_unity(small_run):
+    subject = np.load(small_run / "dataset" / "subject.npz")
+    grid = subject["skinning_grid"]
+    assert grid.shape == (104, 64, 16, 64)
+    assert grid.min() >= 0
+    np.testing.assert_allclose(grid.sum(axis=0), 1.0, atol=1e-5)
+
+
+def test_bone_transforms_and_grid_weights_reproduce_the_body_model(small_run):
+    """Canonical template + grid weights + the dataset's transforms = Anny's posed body, per frame."""
+    import trimesh
+
+    from igavatar.body.anny_body import AnnyBody
+
+    capture = read_capture_v1(small_run / "capture")
+    body = AnnyBody.load(dict(zip(map(str, capture.poses["phenotype_labels"]), capture.poses["phenotype_values"])))
+    rotations, translation = body.local_rotations_from_pose_parameters(torch.tensor(capture.poses["pose_parameters"]))
+    expected = body.posed_vertices(rotations, translation)
+
+    frames = np.load(small_run / "dataset" / "frames.npz")
+    subject = np.load(small_run / "dataset" / "subject.npz")
+    x_canonical = torch.tensor(trimesh.load(small_run / "dataset" / "template.ply", process=False).vertices, dtype=torch.float32)
+    weights = sample_skinning_weights(
+        torch.tensor(subject["skinning_grid"]), torch.tensor(subject["grid_box_min"]),
+        torch.tensor(subject["grid_box_max"]), x_canonical,
+    )
+    posed = linear_blend_skinning(x_canonical, weights, torch.tensor(frames["bone_transforms"]))
+    error = (posed - expected).norm(dim=-1)
+    # The grid blurs weights where limbs meet; most of the body is exact to a millimetre.
+    assert error.median() < 2e-3 and error.quantile(0.95) < 2e-2, (error.median(), error.quantile(0.95))
+    boxes = torch.tensor(frames["posed_boxes"])
+    assert torch.all(expected >= boxes[:, None, 0] - 1e-3) and torch.all(expected <= boxes[:, None, 1] + 1e-3)
+    joints_uv = project_points(frames["K"][0].astype(np.float64), frames["w2c"][0].astype(np.float64), frames["posed_joints"][0].astype(np.float64))
+    assert np.all((joints_uv > 0) & (joints_uv < 64)), "skeleton projects outside the image"
+
+
+def test_intrinsics_follow_the_resize(small_run):
+    capture = read_capture_v1(small_run / "capture")
+    frames = np.load(small_run / "dataset" / "frames.npz")
+    np.testing.assert_allclose(frames["K"][0], scale_intrinsics(capture.K[0], (64 / 96, 64 / 96)), rtol=1e-6)
+
+
+def test_rerun_with_same_inputs_skips_and_force_redoes(small_run, tmp_path):
+    options = PreprocessOptions(capture=small_run / "capture", out=small_run / "dataset", max_size=64)
+    assert "skipped" in run_preprocess(options)
+    assert "skipped" not in run_preprocess(PreprocessOptions(**{**options.__dict__, "force": True}))
+
+
+def test_preprocess_on_the_wrong_artifact_kind(small_run, cli_runner, tmp_path):
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(small_run / "dataset"), "--out", str(tmp_path / "d")])
+    assert result.exit_code == 3
+    assert "is a dataset artifact" in result.output and "needs a capture artifact" in result.output
+    assert not (tmp_path / "d").exists()
+
+
+def test_corrupted_capture_is_refused_and_nothing_is_written(small_run, cli_runner, tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(small_run / "capture", capture)
+    image = sorted((capture / "images").iterdir())[0]
+    data = bytearray(image.read_bytes())
+    data[-20] ^= 0xFF
+    image.write_bytes(bytes(data))
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(capture), "--out", str(tmp_path / "d")])
+    assert result.exit_code == 3 and "sha256 mismatch" in result.output
+    assert not (tmp_path / "d").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["capture"]
+
+
+def test_validate_reports_an_edited_dataset_file(small_run, cli_runner, tmp_path):
+    dataset = tmp_path / "dataset"
+    shutil.copytree(small_run / "dataset", dataset)
+    path = dataset / "frames.npz"
+    data = bytearray(path.read_bytes())
+    data[100] ^= 0x01
+    path.write_bytes(bytes(data))
+    result = cli_runner.invoke(app, ["validate", str(dataset)])
+    assert result.exit_code == 3 and "frames.npz: sha256 mismatch" in result.output
+
+
+def test_capture_without_masks_is_a_clear_error(small_run, cli_runner, tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(small_run / "capture", capture)
+    (capture / "manifest.json").unlink()  # a hand-made capture: no manifest
+    shutil.rmtree(capture / "masks")
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(capture), "--out", str(tmp_path / "d")])
+    assert result.exit_code == 2 and "no masks" in result.output
+
+
+def test_unknown_body_model_via_cli(small_run, cli_runner, tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(small_run / "capture", capture)
+    (capture / "manifest.json").unlink()
+    meta = json.loads((capture / "capture.json").read_text())
+    meta["body_model"] = "star"
+    (capture / "capture.json").write_text(json.dumps(meta))
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(capture), "--out", str(tmp_path / "d")])
+    assert result.exit_code == 2 and "unknown body model 'star'" in result.output
+    assert "Traceback" not in result.output
