@@ -1,0 +1,266 @@
+"""Canonical fields: hash-grid SDF (with analytic gradient), colour field and Laplace density.
+
+    sdf_field = SDFField(SDFFieldConfig(), box_min=torch.full((3,), -1.0), box_max=torch.ones(3))
+    sdf, feature, grad_sdf = sdf_field.forward_with_gradient(x_canonical)  # (P,), (P, 16), (P, 3)
+
+``SDFField`` maps a canonical point to a signed distance (metres, positive outside) and a 16-d
+feature whose channel 0 is that distance (as in the official InstantGeoAvatar code). Its input is the
+hash-grid encoding plus the point itself, centred on the box and divided by the box's largest
+half-extent. ``forward_with_gradient`` returns ``d sdf / d x_canonical`` in closed form: the hash
+grid's spatial Jacobian chained with the MLP's Jacobian (a reverse sweep over the small MLP), so the
+eikonal and smoothness losses train the field with one ordinary backward pass.
+``ColorField`` maps (feature, canonical normal) to RGB; ``LaplaceDensity`` maps distance to VolSDF
+density ``sigma = (1 / beta) * Psi_beta(-d)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from igavatar.errors import InputError
+from igavatar.model.hashgrid import HashGridConfig, HashGridEncoding
+
+
+_SOFTPLUS_THRESHOLD = 20.0  # F.softplus's default: identity where beta * z > 20
+
+
+def _require(config_name: str, field_name: str, value: object, ok: bool, why: str) -> None:
+    if not ok:
+        raise InputError(f"{config_name}.{field_name}: {value!r} {why}")
+
+
+def fibonacci_sphere(n: int) -> torch.Tensor:
+    """``n`` nearly uniformly spread unit vectors (golden-angle spiral), float64 ``(n, 3)``."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = torch.sqrt(1.0 - z * z)
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
+    return torch.stack((r * torch.cos(phi), r * torch.sin(phi), z), dim=-1)
+
+
+@dataclass(frozen=True)
+class SDFFieldConfig:
+    """Architecture and initial shape of the canonical SDF field."""
+
+    hash_grid: HashGridConfig = field(default_factory=HashGridConfig)
+    """Multiresolution hash encoding of the canonical point."""
+
+    hidden_dim: int = 64
+    """Width of the MLP's hidden layers."""
+
+    n_hidden_layers: int = 1
+    """Number of hidden layers (official: 1)."""
+
+    feature_dim: int = 16
+    """Output channels; channel 0 is the signed distance, all 16 are the feature passed on."""
+
+    softplus_beta: float = 100.0
+    """Sharpness of the Softplus activation (a smooth ReLU, so the SDF has smooth gradients)."""
+
+    sphere_radius: float = 0.5
+    """Radius in metres of the sphere, centred on the box, that the SDF represents at initialisation."""
+
+    def __post_init__(self) -> None:
+        name = "SDFFieldConfig"
+        _require(name, "hidden_dim", self.hidden_dim, self.hidden_dim >= 4, "must be >= 4")
+        _require(name, "n_hidden_layers", self.n_hidden_layers, self.n_hidden_layers >= 1, "must be >= 1")
+        _require(name, "feature_dim", self.feature_dim, self.feature_dim >= 1, "must be >= 1")
+        _require(name, "softplus_beta", self.softplus_beta, self.softplus_beta > 0, "must be > 0")
+        _require(name, "sphere_radius", self.sphere_radius, self.sphere_radius > 0, "must be > 0")
+
+
+class SDFField(nn.Module):
+    """Canonical SDF: ``x_canonical (P, 3) -> (sdf (P,), feature (P, feature_dim))``.
+
+    Submodules: ``encoding`` (HashGridEncoding over the box), ``layers`` (nn.ModuleList of Linear:
+    input ``3 + L*F`` -> hidden ... -> ``feature_dim``). Buffers: ``centre (3,)`` (box centre) and
+    ``input_scale`` (largest half-extent of the box, metres).
+    """
+
+    def __init__(self, config: SDFFieldConfig, box_min: torch.Tensor, box_max: torch.Tensor) -> None:
+        super().__init__()
+        self.config = config
+        self.encoding = HashGridEncoding(config.hash_grid, box_min, box_max)
+        centre = 0.5 * (self.encoding.box_min + self.encoding.box_max)
+        half_extent = 0.5 * (self.encoding.box_max - self.encoding.box_min)
+        self.register_buffer("centre", centre)
+        self.register_buffer("input_scale", half_extent.max().reshape(()))
+        dims = [3 + self.encoding.output_dim] + [config.hidden_dim] * config.n_hidden_layers + [config.feature_dim]
+        self.layers = nn.ModuleList(nn.Linear(d_in, d_out) for d_in, d_out in zip(dims[:-1], dims[1:]))
+        self.reset_to_sphere()
+
+    @torch.no_grad()
+    def reset_to_sphere(self) -> None:
+        """Geometric initialisation: ``sdf(x) ~= |x - centre| - sphere_radius`` over the whole space.
+
+        A variant of SAL's geometric init (Atzmon & Lipman 2020) made exact rather than exact in
+        expectation: with zero biases every first-layer unit is ``relu(a * d_i . x_in)`` and, for
+        directions d_i spread uniformly over the sphere, ``sum_i relu(d_i . u)`` is nearly the
+        same for every unit vector u. With 64 units, Fibonacci-sphere directions make it so to 0.4 %
+        (std over u; SAL's random Gaussian rows leave 15-20 %); the output weight then
+        normalises the sum to ``|x_in| * input_scale = |x - centre|`` and the bias is ``-radius``
+        (the official release forgets this bias). Deeper hidden layers start as the identity,
+        which passes ``relu`` activations through unchanged. The hash-feature columns get small
+        Gaussian weights: the table starts at +-1e-4, so they perturb the sphere by ~1e-4 m,
+        yet the table receives gradients from the first step (zero columns would block them).
+        """
+        cfg = self.config
+        hidden = cfg.hidden_dim
+        # Unit rows: a Softplus(beta) unit is then sharp within input_scale / beta (~1 cm for a 1 m
+        # box) of its plane; SAL's smaller N(0, 2/hidden) rows would round the sphere far more.
+        row_norm = 1.0
+        directions = fibonacci_sphere(hidden)
+        first = self.layers[0]
+        first.weight.zero_()
+        first.bias.zero_()
+        first.weight[:, :3] = (row_norm * directions).to(first.weight.dtype)
+        nn.init.normal_(first.weight[:, 3:], mean=0.0, std=math.sqrt(2.0 / hidden))
+        for layer in self.layers[1:-1]:
+            layer.weight.copy_(torch.eye(hidden, dtype=layer.weight.dtype))
+            layer.bias.zero_()
+        # Mean over many unit vectors of sum_i relu(row_norm * d_i . u): the gain of the hidden sum.
+        probe = fibonacci_sphere(4096)
+        gain = torch.relu(row_norm * probe @ directions.T).sum(dim=1).mean().item()
+        last = self.layers[-1]
+        nn.init.kaiming_uniform_(last.weight, a=math.sqrt(5))  # nn.Linear's default for features
+        last.bias.zero_()
+        last.weight[0] = float(self.input_scale) / gain
+        # Bias: -radius corrected by the Softplus offsets (ln 2 / beta per unit near its plane), so
+        # that the sphere is exactly the zero level on average.
+        last.bias[0] = 0.0
+        on_sphere = self.centre.double() + cfg.sphere_radius * fibonacci_sphere(1024)
+        last.bias[0] = -self.forward(on_sphere.to(last.weight.dtype))[0].mean()
+
+    def _mlp_input(self, x_canonical: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
+        x_centred = (x_canonical.to(encoded.dtype) - self.centre.to(encoded.dtype)) / self.input_scale.to(encoded.dtype)
+        return torch.cat((x_centred, encoded), dim=-1)
+
+    def forward(self, x_canonical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``x_canonical (P, 3)`` -> ``(sdf (P,), feature (P, feature_dim))``, ``sdf = feature[:, 0]``."""
+        h = self._mlp_input(x_canonical, self.encoding(x_canonical))
+        beta = self.config.softplus_beta
+        for layer in self.layers[:-1]:
+            h = F.softplus(layer(h), beta=beta, threshold=_SOFTPLUS_THRESHOLD)
+        feature = self.layers[-1](h)
+        return feature[:, 0], feature
+
+    def forward_with_gradient(self, x_canonical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``x_canonical (P, 3)`` -> ``(sdf (P,), feature (P, feature_dim), grad_sdf (P, 3))``.
+
+        ``grad_sdf = d sdf / d x_canonical`` in closed form; all three outputs are differentiable wrt
+        the parameters (a loss on ``grad_sdf`` trains the table and the MLP with one backward pass).
+        """
+        encoded, jacobian = self.encoding.forward_with_jacobian(x_canonical)  # (P, C), (P, C, 3)
+        h = self._mlp_input(x_canonical, encoded)
+        beta = self.config.softplus_beta
+        slopes = []
+        for layer in self.layers[:-1]:
+            z = layer(h)
+            # d softplus_beta(z) / dz, with F.softplus's switch to the identity above beta*z > 20
+            # so that grad_sdf is exactly the derivative of the sdf that forward() returns.
+            slopes.append(torch.where(beta * z > _SOFTPLUS_THRESHOLD, 1.0, torch.sigmoid(beta * z)))
+            h = F.softplus(z, beta=beta, threshold=_SOFTPLUS_THRESHOLD)
+        feature = self.layers[-1](h)
+
+        # Reverse sweep of the scalar sdf = feature[:, 0] through the MLP: (P, width) vectors only.
+        grad_h = self.layers[-1].weight[0]  # (hidden,), broadcasts over points
+        for layer, slope in zip(reversed(self.layers[:-1]), reversed(slopes)):
+            grad_h = (grad_h * slope) @ layer.weight
+        grad_input = grad_h  # (P, 3 + C): d sdf / d (x_centred, encoded)
+        grad_sdf = grad_input[:, :3] / self.input_scale.to(grad_input.dtype) + torch.einsum(
+            "pc,pcd->pd", grad_input[:, 3:], jacobian
+        )
+        return feature[:, 0], feature, grad_sdf
+
+
+@dataclass(frozen=True)
+class ColorFieldConfig:
+    """Architecture of the canonical colour field (no view direction, as in the official code)."""
+
+    feature_dim: int = 16
+    """Channels of the SDF feature it is conditioned on (SDFFieldConfig.feature_dim)."""
+
+    hidden_dim: int = 64
+    """Width of the hidden layers."""
+
+    n_hidden_layers: int = 2
+    """Number of ReLU hidden layers."""
+
+    def __post_init__(self) -> None:
+        name = "ColorFieldConfig"
+        _require(name, "feature_dim", self.feature_dim, self.feature_dim >= 1, "must be >= 1")
+        _require(name, "hidden_dim", self.hidden_dim, self.hidden_dim >= 1, "must be >= 1")
+        _require(name, "n_hidden_layers", self.n_hidden_layers, self.n_hidden_layers >= 1, "must be >= 1")
+
+
+class ColorField(nn.Module):
+    """Canonical colour: ``(feature (P, feature_dim), normal_canonical (P, 3)) -> rgb (P, 3)`` in [0, 1]."""
+
+    def __init__(self, config: ColorFieldConfig) -> None:
+        super().__init__()
+        self.config = config
+        dims = [config.feature_dim + 3] + [config.hidden_dim] * config.n_hidden_layers
+        layers: list[nn.Module] = []
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            layers += [nn.Linear(d_in, d_out), nn.ReLU()]
+        layers.append(nn.Linear(dims[-1], 3))
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, feature: torch.Tensor, normal_canonical: torch.Tensor) -> torch.Tensor:
+        """``feature (P, feature_dim)``, ``normal_canonical (P, 3)`` (unit) -> ``rgb (P, 3)`` in [0, 1]."""
+        if feature.shape[:-1] != normal_canonical.shape[:-1] or feature.shape[-1] != self.config.feature_dim \
+                or normal_canonical.shape[-1] != 3:
+            raise ValueError(
+                f"ColorField: expected feature (P, {self.config.feature_dim}) and normal_canonical (P, 3), "
+                f"got {tuple(feature.shape)} and {tuple(normal_canonical.shape)}"
+            )
+        return torch.sigmoid(self.mlp(torch.cat((feature, normal_canonical), dim=-1)))
+
+
+@dataclass(frozen=True)
+class LaplaceDensityConfig:
+    """VolSDF density from signed distance: the CDF of a zero-mean Laplace distribution of scale beta."""
+
+    beta_init: float = 0.1
+    """Initial beta in metres (official: 0.075 after the body-shape initialisation)."""
+
+    beta_min: float = 1e-4
+    """Lower bound of beta, so the density stays finite."""
+
+    def __post_init__(self) -> None:
+        name = "LaplaceDensityConfig"
+        _require(name, "beta_min", self.beta_min, self.beta_min > 0, "must be > 0")
+        _require(name, "beta_init", self.beta_init, self.beta_init >= self.beta_min,
+                 f"must be >= beta_min ({self.beta_min})")
+
+
+class LaplaceDensity(nn.Module):
+    """``sdf (...) -> sigma (...)``, ``sigma = (1/beta) (0.5 + 0.5 sign(-d) (1 - exp(-|d|/beta)))``.
+
+    Parameter ``beta_offset`` (scalar): ``beta = beta_min + |beta_offset|``. The absolute value (as in
+    VolSDF) keeps beta >= beta_min with a non-zero gradient; a hard clamp would freeze beta for good
+    once an optimiser step pushed it below the bound.
+    """
+
+    def __init__(self, config: LaplaceDensityConfig = LaplaceDensityConfig()) -> None:
+        super().__init__()
+        self.config = config
+        self.beta_offset = nn.Parameter(torch.tensor(config.beta_init - config.beta_min))
+
+    @property
+    def beta(self) -> torch.Tensor:
+        """Current Laplace scale (scalar tensor, differentiable)."""
+        return self.config.beta_min + self.beta_offset.abs()
+
+    def forward(self, sdf: torch.Tensor) -> torch.Tensor:
+        """Density of the same shape as ``sdf``; ``0.5 / beta`` at the surface, monotone decreasing."""
+        beta = self.beta.to(sdf.dtype)
+        # One exp of a non-positive argument: never overflows, and both branches stay finite so
+        # torch.where's gradient has no NaN. Outside: 0.5 e^{-d/b}; inside: 1 - 0.5 e^{d/b}.
+        decay = torch.exp(-sdf.abs() / beta)
+        return torch.where(sdf > 0, 0.5 * decay, 1.0 - 0.5 * decay) / beta

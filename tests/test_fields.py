@@ -1,0 +1,210 @@
+"""Canonical fields: sphere initialisation, analytic SDF gradient, eikonal training gradient, density.
+
+    .venv/bin/python -m pytest tests/test_fields.py -q
+"""
+
+import math
+
+import pytest
+import torch
+
+from igavatar.errors import InputError
+from igavatar.model.fields import (
+    ColorField,
+    ColorFieldConfig,
+    LaplaceDensity,
+    LaplaceDensityConfig,
+    SDFField,
+    SDFFieldConfig,
+    fibonacci_sphere,
+)
+from igavatar.model.hashgrid import HashGridConfig
+
+SMALL_GRID = HashGridConfig(n_levels=4, log2_hashmap_size=10, base_resolution=4, finest_resolution=40)
+BOX_MIN = torch.tensor([-0.8, -1.1, -0.3])
+BOX_MAX = torch.tensor([0.6, 1.2, 0.5])
+CENTRE = 0.5 * (BOX_MIN + BOX_MAX)
+
+
+def make_field(n_hidden_layers=1, radius=0.4, dtype=torch.float32, seed=0, perturb_table=0.0):
+    torch.manual_seed(seed)
+    config = SDFFieldConfig(hash_grid=SMALL_GRID, n_hidden_layers=n_hidden_layers, sphere_radius=radius)
+    field = SDFField(config, BOX_MIN, BOX_MAX).to(dtype)
+    if perturb_table:
+        # A trained-looking table, so the hash features matter in gradient checks.
+        with torch.no_grad():
+            field.encoding.table.uniform_(-perturb_table, perturb_table)
+    return field
+
+
+def box_points(n, dtype=torch.float32, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return BOX_MIN.to(dtype) + torch.rand(n, 3, generator=g, dtype=dtype) * (BOX_MAX - BOX_MIN).to(dtype)
+
+
+@pytest.mark.parametrize("n_hidden_layers", [1, 2])
+def test_initial_sdf_is_the_sphere(n_hidden_layers):
+    field = make_field(n_hidden_layers=n_hidden_layers, radius=0.4)
+    x = box_points(20000)
+    with torch.no_grad():
+        sdf, feature, grad = field.forward_with_gradient(x)
+    analytic = (x - CENTRE).norm(dim=-1) - 0.4
+    assert feature.shape == (20000, 16) and torch.equal(sdf, feature[:, 0])
+    # Softplus rounds the cone apex at the centre by ~1.5 cm; the Fibonacci directions leave a ~1 %
+    # direction-dependent gain, i.e. mm-level errors near the surface.
+    assert (sdf - analytic).abs().max() < 0.025
+    near_surface = analytic.abs() < 0.05
+    assert near_surface.sum() > 500
+    assert ((sdf - analytic)[near_surface]).abs().max() < 0.008
+    norms = grad[near_surface].norm(dim=-1)
+    assert (norms - 1).abs().max() < 0.03
+    # The gradient points away from the centre (outward normal of the sphere).
+    radial = torch.nn.functional.normalize(x - CENTRE, dim=-1)
+    assert (torch.nn.functional.cosine_similarity(grad[near_surface], radial[near_surface]) > 0.99).all()
+
+
+def test_sphere_outside_the_box_and_custom_radius():
+    field = make_field(radius=0.25)
+    directions = fibonacci_sphere(200).float()
+    with torch.no_grad():
+        on_surface, _ = field(CENTRE + 0.25 * directions)
+        far, _ = field(CENTRE + 2.0 * directions)  # well outside the box: hash features clamped
+    assert on_surface.abs().max() < 0.005
+    assert ((far - 1.75).abs() < 0.04).all()  # ~1 % direction-dependent gain far out
+
+
+def test_forward_with_gradient_matches_forward_and_autograd():
+    field = make_field(n_hidden_layers=2, dtype=torch.float64, perturb_table=0.5)
+    x = box_points(300, dtype=torch.float64).requires_grad_(True)
+    sdf, feature, grad = field.forward_with_gradient(x)
+    sdf_plain, feature_plain = field(x)
+    assert torch.allclose(sdf, sdf_plain, atol=1e-12) and torch.allclose(feature, feature_plain, atol=1e-12)
+    grad_autograd = torch.autograd.grad(sdf_plain.sum(), x)[0]
+    assert torch.allclose(grad, grad_autograd, atol=1e-10, rtol=0)
+    assert (grad - grad_autograd).abs().max() < 1e-10 * grad.abs().max()
+
+    eps = 1e-7
+    with torch.no_grad():
+        fd = torch.stack(
+            [(field(x + eps * e)[0] - field(x - eps * e)[0]) / (2 * eps) for e in torch.eye(3, dtype=torch.float64)],
+            dim=-1,
+        )
+    # Rare points whose step crosses a hash-grid cell face are excluded by the quantile.
+    per_point = (fd - grad).abs().amax(dim=1)
+    assert torch.quantile(per_point, 0.95) < 1e-5
+
+
+def test_eikonal_gradient_matches_double_backward():
+    field = make_field(n_hidden_layers=1, dtype=torch.float64, perturb_table=0.3)
+    x = box_points(400, dtype=torch.float64)
+    target = torch.randn(400, dtype=torch.float64) * 0.1
+
+    def loss_from(sdf, grad):
+        eikonal = ((grad.norm(dim=-1) - 1) ** 2).mean()
+        normals = torch.nn.functional.normalize(grad, dim=-1)
+        smooth = (normals[1:] - normals[:-1]).norm(dim=-1).mean()  # along-"ray" neighbours
+        return eikonal + smooth + ((sdf - target) ** 2).mean()
+
+    sdf, _, grad = field.forward_with_gradient(x)
+    loss_from(sdf, grad).backward()
+    ours = {name: p.grad.clone() for name, p in field.named_parameters()}
+
+    field.zero_grad()
+    x_ref = x.clone().requires_grad_(True)
+    sdf_ref, _ = field(x_ref)
+    grad_ref = torch.autograd.grad(sdf_ref.sum(), x_ref, create_graph=True)[0]
+    loss_from(sdf_ref, grad_ref).backward()
+    for name, p in field.named_parameters():
+        assert torch.allclose(ours[name], p.grad, atol=1e-10, rtol=1e-8), name
+    assert ours["encoding.table"].abs().max() > 0
+
+
+def test_eikonal_reaches_the_table_at_initialisation():
+    field = make_field()
+    _, _, grad = field.forward_with_gradient(box_points(1000))
+    ((grad.norm(dim=-1) - 1.2) ** 2).mean().backward()
+    assert field.encoding.table.grad.abs().max() > 0
+    assert field.layers[0].weight.grad[:, 3:].abs().max() > 0
+
+
+def test_default_config_shapes():
+    field = SDFField(SDFFieldConfig(), BOX_MIN, BOX_MAX)
+    assert field.encoding.output_dim == 32
+    assert [tuple(layer.weight.shape) for layer in field.layers] == [(64, 35), (16, 64)]
+    sdf, feature, grad = field.forward_with_gradient(box_points(64))
+    assert sdf.shape == (64,) and feature.shape == (64, 16) and grad.shape == (64, 3)
+
+
+def test_laplace_density():
+    density = LaplaceDensity(LaplaceDensityConfig(beta_init=0.1))
+    beta = density.beta.item()
+    assert beta == pytest.approx(0.1)
+    sdf = torch.linspace(-2.0, 2.0, 4001)
+    sigma = density(sdf)
+    assert (sigma[1:] <= sigma[:-1]).all()  # float32 saturates at 1/beta deep inside
+    sdf64 = torch.linspace(-1.0, 1.0, 4001, dtype=torch.float64)
+    sigma64 = density(sdf64)
+    assert (sigma64[1:] < sigma64[:-1]).all()  # strictly decreasing in the distance
+    assert density(torch.zeros(1)).item() == pytest.approx(0.5 / beta)
+    naive = (1 / beta) * (0.5 + 0.5 * torch.sign(-sdf) * (1 - torch.exp(-sdf.abs() / beta)))
+    assert torch.allclose(sigma, naive, atol=1e-5, rtol=1e-5)
+    # Limits 1/beta inside, 0 outside, finite with finite gradients for huge distances.
+    extreme = torch.tensor([-1e30, -1e4, 1e4, 1e30], requires_grad=True)
+    out = density(extreme)
+    assert torch.isfinite(out).all()
+    assert out[0].item() == pytest.approx(1 / beta) and out[-1].item() == 0.0
+    out.sum().backward()
+    assert torch.isfinite(extreme.grad).all() and torch.isfinite(density.beta_offset.grad).all()
+    # Same shape in, same shape out; float64 stays float64.
+    assert density(torch.zeros(2, 5, dtype=torch.float64)).shape == (2, 5)
+    assert density(torch.zeros(3, dtype=torch.float64)).dtype == torch.float64
+
+
+def test_laplace_density_beta_floor_keeps_a_gradient():
+    density = LaplaceDensity(LaplaceDensityConfig(beta_init=0.1, beta_min=1e-4))
+    with torch.no_grad():
+        density.beta_offset.fill_(-5e-5)  # an optimiser step overshot past zero
+    assert density.beta.item() >= 1e-4
+    density(torch.tensor([0.0])).sum().backward()
+    assert density.beta_offset.grad.abs().item() > 0
+    # d sigma(0) / d beta = -0.5 / beta^2
+    density.zero_grad()
+    fresh = LaplaceDensity()
+    fresh(torch.tensor([0.0])).sum().backward()
+    assert fresh.beta_offset.grad.item() == pytest.approx(-0.5 / fresh.beta.item() ** 2, rel=1e-5)
+
+
+def test_color_field_range_and_shapes():
+    torch.manual_seed(0)
+    color = ColorField(ColorFieldConfig())
+    feature = torch.randn(500, 16) * 100.0
+    normal = torch.nn.functional.normalize(torch.randn(500, 3), dim=-1)
+    rgb = color(feature, normal)
+    assert rgb.shape == (500, 3)
+    assert (rgb >= 0).all() and (rgb <= 1).all()
+    assert sum(isinstance(m, torch.nn.Linear) for m in color.mlp) == 3
+    with pytest.raises(ValueError, match="feature"):
+        color(torch.zeros(4, 15), torch.zeros(4, 3))
+
+
+def test_fields_chain_together():
+    """SDF feature + analytic normal -> colour, and distance -> density, all differentiable."""
+    field = make_field()
+    color = ColorField(ColorFieldConfig(feature_dim=16))
+    density = LaplaceDensity()
+    sdf, feature, grad = field.forward_with_gradient(box_points(100))
+    rgb = color(feature, torch.nn.functional.normalize(grad, dim=-1))
+    (rgb.sum() + density(sdf).sum()).backward()
+    assert field.encoding.table.grad is not None and color.mlp[0].weight.grad is not None
+    assert math.isfinite(density.beta_offset.grad.item())
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(InputError, match="SDFFieldConfig.sphere_radius"):
+        SDFFieldConfig(sphere_radius=0.0)
+    with pytest.raises(InputError, match="SDFFieldConfig.n_hidden_layers"):
+        SDFFieldConfig(n_hidden_layers=0)
+    with pytest.raises(InputError, match="LaplaceDensityConfig.beta_init"):
+        LaplaceDensityConfig(beta_init=1e-5, beta_min=1e-4)
+    with pytest.raises(InputError, match="ColorFieldConfig.hidden_dim"):
+        ColorFieldConfig(hidden_dim=0)
