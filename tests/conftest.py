@@ -52,3 +52,15 @@ def tiny_skeleton_capture(tmp_path: Path) -> Path:
 @pytest.fixture
 def cli_runner() -> CliRunner:
     return CliRunner()
+
+
+@pytest.fixture(scope="session")
+def small_run(tmp_path_factory) -> Path:
+    """A tiny synthetic capture (96 px, 4 train + 3 test frames) and its dataset, shared by tests."""
+    from stages.preprocess import PreprocessOptions, run_preprocess
+    from stages.synth import SynthOptions, run_synth
+
+    run = tmp_path_factory.mktemp("run")
+    run_synth(SynthOptions(out=run / "capture", resolution=96, train_frames=4, test_frames=3, seed=3))
+    run_preprocess(PreprocessOptions(capture=run / "capture", out=run / "dataset", max_size=64))
+    return run

@@ -17,15 +17,6 @@ from igavatar.capture.images import project_points, scale_intrinsics
 from igavatar.skinning.grid import sample_skinning_weights
 from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
-from stages.synth import SynthOptions, run_synth
-
-
-@pytest.fixture(scope="module")
-def small_run(tmp_path_factory) -> Path:
-    run = tmp_path_factory.mktemp("run")
-    run_synth(SynthOptions(out=run / "capture", resolution=96, train_frames=4, test_frames=3, seed=3))
-    run_preprocess(PreprocessOptions(capture=run / "capture", out=run / "dataset", max_size=64))
-    return run
 
 
 def test_dataset_validates_and_records_its_capture(small_run):

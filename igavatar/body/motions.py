@@ -40,6 +40,11 @@ SEMANTIC_JOINTS: tuple[str, ...] = (
 ) + tuple(f"{side}_{part}" for side, _ in _SIDES for part in _LIMB_PARTS)
 """Body parts the motions drive; "pelvis" is the skeleton's root."""
 
+ROOT_FINDING_PARTS: tuple[str, ...] = (
+    "pelvis", "spine_mid", "neck", "head",
+) + tuple(f"{side}_{part}" for side, _ in _SIDES for part in ("thigh", "shin", "foot", "upper_arm", "forearm"))
+"""Major bones that Fast-SNARF starts root finding from (SMPL's 13 plus the mid spine)."""
+
 _ANNY_JOINTS = {
     "pelvis": "root", "spine_lower": "spine05", "spine_mid": "spine03", "spine_upper": "spine01",
     "neck": "neck01", "head": "head",

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from igavatar.body.motions import ROOT_FINDING_PARTS, semantic_joint_map
 from igavatar.body.rotations import invert_rigid, matrix_to_axis_angle
 from igavatar.body.skeleton import Skeleton, bone_transforms, forward_kinematics, linear_blend_skinning
 from igavatar.capture.capture_v1 import CaptureV1
@@ -36,6 +37,7 @@ class PosedSubject:
         template_faces: (F, 3) int64, or None.
         template_weights: (V, J) skinning weights of the template, or None.
         description: JSON-able facts recorded in the dataset (e.g. the phenotype).
+        init_bones: joint indices root finding starts from (the body's major bones).
     """
 
     body_model: str
@@ -47,6 +49,7 @@ class PosedSubject:
     template_faces: torch.Tensor | None
     template_weights: torch.Tensor | None
     description: dict
+    init_bones: tuple[int, ...]
 
 
 @dataclass(frozen=True)
@@ -89,7 +92,14 @@ def _anny_subject(capture: CaptureV1, anny_cache: Path | None, on_status: Callab
         template_faces=body.faces,
         template_weights=body.skinning_weights,
         description={"phenotype": body.phenotype},
+        init_bones=major_bones(body.skeleton, "anny"),
     )
+
+
+def major_bones(skeleton: Skeleton, skeleton_kind: str) -> tuple[int, ...]:
+    """Indices of the major bones (ROOT_FINDING_PARTS) in a skeleton of a known kind."""
+    names = semantic_joint_map(skeleton_kind)
+    return tuple(sorted({skeleton.index(names[part]) for part in ROOT_FINDING_PARTS}))
 
 
 def subject_from_capture(

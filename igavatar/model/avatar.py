@@ -1,0 +1,158 @@
+"""The avatar: canonical SDF + colour fields, Laplace density, non-rigid offsets, Fast-SNARF deformer.
+
+    avatar = Avatar(AvatarConfig(), canonical_box, skinning_grid, grid_box_min, grid_box_max, pose_dim)
+    frame = avatar.deformer.prepare(bone_transforms)                   # once per frame
+    x_canonical, found = avatar.correspond(x_posed, frame, pose)       # posed -> canonical (no grad)
+    out = avatar.field_at(x_canonical, pose)                           # sigma, rgb, gradient, sdf
+
+Posing follows the paper: the rigid correspondence from root finding plus a pose-conditioned
+offset, `x = x_rigid + f_dx(x_rigid, theta)`, at which the canonical fields are evaluated. Among
+several valid roots of one posed point the one with the highest density wins (official code).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, PreparedFrame
+from igavatar.model.fields import (
+    ColorField,
+    ColorFieldConfig,
+    LaplaceDensity,
+    LaplaceDensityConfig,
+    SDFField,
+    SDFFieldConfig,
+)
+from igavatar.model.nonrigid import NonRigidConfig, NonRigidOffset
+from igavatar.render.volume import FieldOutput
+
+
+@dataclass(frozen=True)
+class AvatarConfig:
+    """Architecture of every learned part, and how posed points find their canonical match."""
+
+    sdf: SDFFieldConfig = field(default_factory=SDFFieldConfig)
+    """Canonical SDF field (hash grid + MLP)."""
+    color: ColorFieldConfig = field(default_factory=ColorFieldConfig)
+    """Canonical colour field."""
+    density: LaplaceDensityConfig = field(default_factory=lambda: LaplaceDensityConfig(beta_init=0.075))
+    """Laplace density; beta starts at 0.075 after shape initialisation (official)."""
+    nonrigid_width: int = 128
+    """Hidden width of the non-rigid offset MLP."""
+    nonrigid_layers: int = 4
+    """Hidden layers of the non-rigid offset MLP."""
+    nonrigid_max_offset: float = 0.1
+    """Bound of the non-rigid offset in metres (output = bound * tanh)."""
+    deformer: DeformerConfig = field(default_factory=lambda: DeformerConfig(init_top_k=4))
+    """Root finding; by default each point starts from the 4 bones that best explain it rigidly."""
+
+
+class Avatar(nn.Module):
+    """All learned parts of one subject, plus the (fixed) skinning grid inside the deformer.
+
+    Args:
+        config: AvatarConfig.
+        canonical_box: (2, 3) box of the SDF's hash grid in canonical space.
+        skinning_grid: (J, D, H, W) canonical skinning weights.
+        grid_box_min, grid_box_max: (3,) box of the skinning grid.
+        pose_dim: length of the pose-conditioning vector of the non-rigid offset.
+        init_bones: bones root finding starts from (the body's major bones), overriding the
+            deformer config's; None keeps the config's.
+    """
+
+    def __init__(
+        self,
+        config: AvatarConfig,
+        canonical_box: torch.Tensor,
+        skinning_grid: torch.Tensor,
+        grid_box_min: torch.Tensor,
+        grid_box_max: torch.Tensor,
+        pose_dim: int,
+        init_bones: tuple[int, ...] | None = None,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.sdf_field = SDFField(config.sdf, canonical_box[0], canonical_box[1])
+        self.color_field = ColorField(config.color)
+        self.density = LaplaceDensity(config.density)
+        self.nonrigid = NonRigidOffset(
+            NonRigidConfig(
+                pose_dim=pose_dim, hidden_width=config.nonrigid_width, hidden_layers=config.nonrigid_layers,
+                max_offset=config.nonrigid_max_offset,
+            )
+        )
+        deformer_config = config.deformer if init_bones is None else replace(config.deformer, init_bones=tuple(init_bones))
+        self.deformer = FastSnarfDeformer(skinning_grid, grid_box_min, grid_box_max, deformer_config)
+        self.register_buffer("canonical_box", canonical_box.clone())
+
+    def canonical_density(self, x_canonical: torch.Tensor) -> torch.Tensor:
+        """sigma (P,) at canonical points, without non-rigid offsets (for the occupancy grid)."""
+        sdf, _ = self.sdf_field(x_canonical)
+        return self.density(sdf)
+
+    def offset_points(self, x_rigid: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+        """(M, 3) rigid canonical points plus the pose-conditioned non-rigid offset (when enabled)."""
+        if not self.nonrigid.enabled:
+            return x_rigid
+        return x_rigid + self.nonrigid(x_rigid, pose)
+
+    @torch.no_grad()
+    def correspond(
+        self, x_posed: torch.Tensor, frame: PreparedFrame, pose: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rigid canonical correspondences of posed points.
+
+        Args:
+            x_posed: (M, 3) posed world points.
+            frame: the deformer's PreparedFrame of this frame.
+            pose: (pose_dim,) conditioning of the non-rigid offset (used to score candidates).
+        Returns:
+            x_canonical (M, 3) rigid correspondences (before the non-rigid offset) and found (M,)
+            bool: whether any valid root exists. Points not found get their first iterate.
+        """
+        candidates, valid = self.deformer.canonicalize(x_posed, frame)
+        count = valid.sum(dim=1)
+        chosen = torch.where(valid.any(dim=1, keepdim=True), valid.float().argmax(dim=1, keepdim=True), 0)[:, 0]
+        ambiguous = count > 1
+        if bool(ambiguous.any()):
+            # Score only the candidates that matter: valid roots of points with several of them.
+            cand = candidates[ambiguous]
+            cand_valid = valid[ambiguous]
+            sdf, _ = self.sdf_field(self.offset_points(cand[cand_valid], pose))
+            score = torch.full(cand_valid.shape, float("-inf"), dtype=sdf.dtype, device=sdf.device)
+            score[cand_valid] = -sdf  # highest density = lowest signed distance
+            chosen[ambiguous] = score.argmax(dim=1)
+        x_canonical = candidates.gather(1, chosen[:, None, None].expand(-1, 1, 3))[:, 0]
+        return x_canonical, count > 0
+
+    def field_at(
+        self,
+        x_rigid: torch.Tensor,
+        pose: torch.Tensor,
+        *,
+        sigma_noise_std: float = 0.0,
+        generator: torch.Generator | None = None,
+    ) -> FieldOutput:
+        """Canonical fields at rigid correspondences (the non-rigid offset is applied here).
+
+        Args:
+            x_rigid: (M, 3) canonical points from `correspond`.
+            pose: (pose_dim,) pose conditioning.
+            sigma_noise_std: std of Gaussian noise added to the density (early training), clamped >= 0.
+            generator: RNG of that noise.
+        Returns:
+            FieldOutput with sigma (M,), rgb (M, 3), sdf (M,) and the analytic SDF gradient (M, 3)
+            (closed form, so it costs no double backward), differentiable wrt the parameters.
+        """
+        sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose))
+        normal = F.normalize(gradient, dim=-1, eps=1e-12)
+        rgb = self.color_field(feature, normal)
+        sigma = self.density(sdf)
+        if sigma_noise_std > 0:
+            noise = torch.randn(sigma.shape, generator=generator, device=sigma.device, dtype=sigma.dtype)
+            sigma = (sigma + sigma_noise_std * noise).clamp_min(0.0)
+        return FieldOutput(sigma=sigma, rgb=rgb, gradient=gradient, sdf=sdf)

@@ -1,0 +1,155 @@
+"""Training configuration and its named presets.
+
+    config = preset("cpu")                                   # a TrainConfig
+    config = dataclasses.replace(config, steps=500, seed=3)   # CLI overrides
+
+`paper` follows the paper and its released code (GPU); `cpu` is sized to give a good avatar of the
+default synthetic subject in about ten minutes on two CPU cores; `tiny` is for tests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+from igavatar.errors import InputError
+from igavatar.model.avatar import AvatarConfig
+from igavatar.model.deformer import DeformerConfig
+from igavatar.model.fields import ColorFieldConfig, LaplaceDensityConfig, SDFFieldConfig
+from igavatar.model.hashgrid import HashGridConfig
+from igavatar.model.losses import LossWeights
+
+Regularizer = Literal["smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe"]
+REGULARIZERS: tuple[str, ...] = ("smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe")
+PRESETS: tuple[str, ...] = ("paper", "cpu", "tiny")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides a training run (recorded, resolved, in the model's manifest)."""
+
+    preset: str = "paper"
+    """Name of the preset these values started from."""
+    steps: int | None = None
+    """Optimisation steps; None = `epochs` x the number of training frames (one frame per step)."""
+    epochs: int = 30
+    """Epochs when `steps` is None (official: 30)."""
+    rays_per_step: int = 4096
+    """Rays per step, drawn as square patches of `patch_size` pixels from one frame."""
+    patch_size: int = 32
+    """Edge of each ray patch in pixels (paper: four 32x32 patches = 4096 rays)."""
+    patch_centres_in_mask: float = 0.9
+    """Fraction of patches centred on a mask pixel; the rest anywhere in the subject's box."""
+    samples_per_ray: int = 256
+    """Bins per ray before empty-space skipping (official: up to 256)."""
+    lr: float = 1e-2
+    """Adam learning rate of every part but beta (official 1e-2)."""
+    beta_lr_factor: float = 0.1
+    """beta's learning rate is lr times this (official: lr / 10)."""
+    network_lr_factor: float = 1.0
+    """Learning rate of the MLPs (SDF, colour, non-rigid) relative to lr; the hash table uses lr."""
+    lr_warmup_steps: int = 0
+    """Linear learning-rate warm-up from lr/100 over this many steps (protects the shape prior)."""
+    lr_decay_power: float = 1.75
+    """Polynomial decay lr * (1 - step / steps) ** power (official 1.75)."""
+    adam_eps: float = 1e-15
+    """Adam epsilon (official 1e-15, as Instant-NGP)."""
+    loss_weights: LossWeights = field(default_factory=LossWeights)
+    """Weights of the loss terms (paper: rgb 10, alpha 0.1, eikonal 0.1, smooth 1.0)."""
+    regularizer: Regularizer = "smooth"
+    """Surface regulariser: the paper's along-ray `smooth` or one of the Table-5 ablations."""
+    fd_eps: float = 1e-3
+    """Step (metres) of finite differences for the fd-eikonal / curvature ablations."""
+    curvature_warmup_steps: int = 200
+    """Linear warm-up of the curvature ablation's weight."""
+    hybrid_pe_frequencies: int = 6
+    """hybrid-pe ablation: Fourier frequencies of the positional encoding added to the hash grid."""
+    hybrid_pe_anneal_fraction: float = 0.5
+    """hybrid-pe ablation: fraction of training over which the hash levels open coarse-to-fine."""
+    sigma_noise_std: float = 0.0
+    """Gaussian noise on the density early in training (released code: 1.0; not in the paper)."""
+    sigma_noise_steps: int = 1000
+    """Steps during which `sigma_noise_std` applies."""
+    occupancy_resolution: int = 64
+    """Cells per axis of the canonical and per-frame posed occupancy grids (official 64)."""
+    occupancy_update_every: int = 16
+    """Steps between canonical occupancy refreshes (official 16)."""
+    nonrigid_start_fraction: float = 1 / 30
+    """Non-rigid offsets switch on after this fraction of training (official: after epoch 1 of 30)."""
+    nonrigid_window_fraction: float = 5 / 30
+    """Their frequency window then opens over this fraction (official: epochs 1..6)."""
+    shape_init_steps: int = 1000
+    """Steps fitting the SDF to the template's SDF before photometric training (0 = sphere)."""
+    shape_init_points: int = 16384
+    """Points per shape-initialisation step."""
+    avatar: AvatarConfig = field(default_factory=AvatarConfig)
+    """Network architecture and root finding."""
+    validate_every: int = 500
+    """Steps between validation renders (PNG); 0 = only at the end."""
+    validation_scale: float = 0.5
+    """Validation renders at this fraction of the dataset's image size."""
+    validation_samples: int = 128
+    """Bins per ray of validation renders."""
+    checkpoint_every: int = 500
+    """Steps between checkpoints (for --resume)."""
+    log_every: int = 10
+    """Steps between rows of the training log."""
+    seed: int = 0
+    """Seed of every random choice (deterministic on CPU)."""
+
+    def resolved_steps(self, num_train_frames: int) -> int:
+        """The number of optimisation steps for a dataset with that many training frames."""
+        return self.steps if self.steps is not None else self.epochs * num_train_frames
+
+
+def _cpu_avatar() -> AvatarConfig:
+    return AvatarConfig(
+        sdf=SDFFieldConfig(hash_grid=HashGridConfig(n_levels=12, log2_hashmap_size=17, base_resolution=16, finest_resolution=1024)),
+        deformer=DeformerConfig(init_top_k=2),
+    )
+
+
+def _tiny_avatar() -> AvatarConfig:
+    return AvatarConfig(
+        sdf=SDFFieldConfig(
+            hash_grid=HashGridConfig(n_levels=4, n_features_per_level=2, log2_hashmap_size=12, base_resolution=4, finest_resolution=32),
+            hidden_dim=16, feature_dim=8,
+        ),
+        color=ColorFieldConfig(feature_dim=8, hidden_dim=16),
+        density=LaplaceDensityConfig(beta_init=0.075),
+        nonrigid_width=16, nonrigid_layers=2,
+        deformer=DeformerConfig(init_top_k=2),
+    )
+
+
+def preset(name: str) -> TrainConfig:
+    """The TrainConfig of a named preset; InputError for an unknown name."""
+    if name == "paper":
+        return TrainConfig(preset="paper", avatar=AvatarConfig(
+            sdf=SDFFieldConfig(hash_grid=HashGridConfig(log2_hashmap_size=17, finest_resolution=4096)),
+        ))
+    if name == "cpu":
+        return TrainConfig(
+            preset="cpu", steps=1500, rays_per_step=1024, patch_size=16, samples_per_ray=96,
+            shape_init_steps=300, shape_init_points=8192, validate_every=500, checkpoint_every=250,
+            validation_scale=0.5, validation_samples=96, avatar=_cpu_avatar(),
+        )
+    if name == "tiny":
+        return TrainConfig(
+            preset="tiny", steps=6, rays_per_step=32, patch_size=4, samples_per_ray=16,
+            occupancy_resolution=16, occupancy_update_every=2, shape_init_steps=5, shape_init_points=256,
+            validate_every=0, checkpoint_every=3, validation_scale=0.25, validation_samples=16, log_every=1,
+            nonrigid_start_fraction=0.34, nonrigid_window_fraction=0.34, avatar=_tiny_avatar(),
+        )
+    raise InputError(f"--preset {name!r}: unknown; expected one of {', '.join(PRESETS)}")
+
+
+def with_overrides(config: TrainConfig, **overrides) -> TrainConfig:
+    """`config` with the given (non-None) fields replaced; InputError for bad values."""
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if "regularizer" in overrides and overrides["regularizer"] not in REGULARIZERS:
+        raise InputError(f"--regularizer {overrides['regularizer']!r}: expected one of {', '.join(REGULARIZERS)}")
+    for name in ("steps", "rays_per_step", "samples_per_ray"):
+        if name in overrides and overrides[name] < 1:
+            raise InputError(f"--{name.replace('_', '-')} {overrides[name]}: must be >= 1")
+    return replace(config, **overrides)

@@ -1,0 +1,259 @@
+"""One training run of the avatar: sampling, rendering, losses, schedule, occupancy, validation.
+
+    trainer = Trainer(config, data, avatar, device="cpu")
+    while trainer.step < trainer.total_steps:
+        log = trainer.train_step()          # {"loss": ..., "rgb": ..., "psnr": ...}
+
+Each step takes one training frame, draws ray patches mostly on the subject, skips empty space
+with the frame's posed occupancy grid, maps the remaining samples to canonical space (Fast-SNARF
+root finding + non-rigid offset), renders them on random-noise background and minimises
+10 L_rgb + 0.1 L_alpha + 0.1 L_eik + 1.0 L_smooth (or an ablation's regulariser). All state that
+decides the next step (weights, Adam moments, RNG, occupancy, step) is in `state_dict()`, so a
+resumed run continues exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import OrderedDict
+
+import torch
+
+from igavatar.model.avatar import Avatar
+from igavatar.model.deformer import PreparedFrame
+from igavatar.model.losses import (
+    alpha_loss,
+    curvature_loss,
+    eikonal_loss,
+    finite_difference_eikonal,
+    finite_difference_terms,
+    linear_warmup,
+    rgb_loss,
+    smooth_loss_along_ray,
+    total_loss,
+)
+from igavatar.model.posed_occupancy import posed_occupancy
+from igavatar.model.render_avatar import render_avatar_view
+from igavatar.render.occupancy import OccupancyGrid
+from igavatar.render.rays import pixel_rays, rays_in_box
+from igavatar.render.sampler import sample_along_rays
+from igavatar.render.volume import ImageRender, render_rays
+from igavatar.training.config import TrainConfig
+from igavatar.training.data import TrainingData, sample_patch_pixels
+
+#: Prepared frames kept in memory (each is a (12, D, H, W) blended-transform grid).
+PREPARED_CACHE = 512
+
+
+def psnr_from_mse(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
+class Trainer:
+    """Optimises an Avatar on TrainingData following a TrainConfig.
+
+    Args:
+        config: the resolved TrainConfig.
+        data: frames (CPU tensors; moved to `device` per step).
+        avatar: the model (moved to `device`).
+        device: torch device.
+    """
+
+    def __init__(self, config: TrainConfig, data: TrainingData, avatar: Avatar, device: torch.device | str = "cpu"):
+        self.config = config
+        self.data = data
+        self.device = torch.device(device)
+        self.avatar = avatar.to(self.device)
+        self.total_steps = config.resolved_steps(len(data.train_indices))
+        self.step = 0
+        self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
+        box = avatar.canonical_box
+        self.canonical_grid = OccupancyGrid(box[0], box[1], resolution=config.occupancy_resolution).to(self.device)
+        table = [p for n, p in avatar.named_parameters() if n.startswith("sdf_field.encoding.")]
+        beta = [p for n, p in avatar.named_parameters() if n.startswith("density.")]
+        networks = [p for n, p in avatar.named_parameters() if not n.startswith(("sdf_field.encoding.", "density."))]
+        self._base_lrs = [config.lr, config.lr * config.network_lr_factor, config.lr * config.beta_lr_factor]
+        self.optimizer = torch.optim.Adam(
+            [{"params": group, "lr": lr} for group, lr in zip((table, networks, beta), self._base_lrs)],
+            betas=(0.9, 0.99), eps=config.adam_eps,
+        )
+        self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
+        self.seconds = 0.0
+        self.samples_seen = 0
+        self.rays_seen = 0
+
+    # ------------------------------------------------------------------ schedule
+    def learning_rate_factor(self, step: int) -> float:
+        """Linear warm-up, then polynomial decay (1 - step/steps)^power (official schedule)."""
+        decay = max(0.0, 1.0 - step / max(1, self.total_steps)) ** self.config.lr_decay_power
+        warmup = self.config.lr_warmup_steps
+        if step < warmup:
+            decay *= 0.01 + 0.99 * step / warmup
+        return decay
+
+    def _apply_schedule(self) -> None:
+        factor = self.learning_rate_factor(self.step)
+        for group, base in zip(self.optimizer.param_groups, self._base_lrs):
+            group["lr"] = base * factor
+        start = int(self.config.nonrigid_start_fraction * self.total_steps)
+        window = max(1, int(self.config.nonrigid_window_fraction * self.total_steps))
+        self.avatar.nonrigid.set_enabled(self.step >= start)
+        self.avatar.nonrigid.set_window(min(1.0, max(0.0, (self.step - start) / window)))
+
+    def prepared_frame(self, index: int) -> PreparedFrame:
+        """The deformer's per-frame precomputation, cached (the skinning grid is fixed)."""
+        if index in self._prepared:
+            self._prepared.move_to_end(index)
+            return self._prepared[index]
+        frame = self.avatar.deformer.prepare(self.data.bone_transforms[index].to(self.device))
+        self._prepared[index] = frame
+        if len(self._prepared) > PREPARED_CACHE:
+            self._prepared.popitem(last=False)
+        return frame
+
+    # ------------------------------------------------------------------ one step
+    def _update_occupancy(self) -> None:
+        grid_generator = torch.Generator(device=self.device).manual_seed(self.config.seed * 7919 + self.step)
+        self.avatar.eval()
+        self.canonical_grid.update(self.avatar.canonical_density, generator=grid_generator)
+
+    def _regulariser_terms(self, out, x_rigid: torch.Tensor, pose: torch.Tensor) -> dict[str, torch.Tensor]:
+        config = self.config
+        valid = out.valid
+        terms: dict[str, torch.Tensor] = {}
+        reg = config.regularizer
+        if reg in ("smooth", "none", "curvature", "hybrid-pe"):
+            terms["eikonal"] = eikonal_loss(out.gradient[valid])
+        if reg == "smooth":
+            terms["smooth"] = smooth_loss_along_ray(out.gradient, valid)
+        if reg in ("fd-eikonal", "curvature", "fd-eikonal+curvature") and x_rigid.shape[0] > 0:
+            x = self.avatar.offset_points(x_rigid, pose)
+
+            def sdf_fn(points: torch.Tensor) -> torch.Tensor:
+                return self.avatar.sdf_field(points)[0]
+
+            warm = linear_warmup(self.step, config.curvature_warmup_steps)
+            if reg == "fd-eikonal":
+                terms["fd_eikonal"] = finite_difference_eikonal(sdf_fn, x, config.fd_eps)
+            elif reg == "curvature":
+                terms["curvature"] = warm * curvature_loss(sdf_fn, x, config.fd_eps)
+            else:
+                fd_eik, curvature = finite_difference_terms(sdf_fn, x, config.fd_eps)
+                terms["fd_eikonal"], terms["curvature"] = fd_eik, warm * curvature
+        return terms
+
+    def train_step(self) -> dict[str, float]:
+        """One optimisation step; returns the step's scalar logs."""
+        started = time.perf_counter()
+        config, data, device = self.config, self.data, self.device
+        if self.step % config.occupancy_update_every == 0:
+            self._update_occupancy()
+        self.avatar.train()
+        self._apply_schedule()
+
+        index = int(data.train_indices[torch.randint(0, len(data.train_indices), (1,), generator=self.generator)])
+        frame = self.prepared_frame(index)
+        pose = data.pose_condition[index].to(device)
+        posed_box = data.posed_boxes[index].to(device)
+        posed_grid = posed_occupancy(
+            self.canonical_grid, self.avatar.deformer, frame, posed_box, config.occupancy_resolution
+        )
+
+        n_patches = max(1, config.rays_per_step // config.patch_size**2)
+        pixels = sample_patch_pixels(
+            data.mask_pixels(index), data.image_size, n_patches, config.patch_size,
+            config.patch_centres_in_mask, self.generator,
+        )
+        target_rgb = data.images[index][pixels[:, 1], pixels[:, 0]].to(device, torch.float32) / 255.0
+        target_mask = data.masks[index][pixels[:, 1], pixels[:, 0]].to(device, torch.float32)
+        background = torch.rand(target_rgb.shape, generator=self.generator).to(device)
+        target = torch.where(target_mask[:, None] > 0.5, target_rgb, background)
+
+        origins, directions = pixel_rays(data.K[index].to(device), data.w2c[index].to(device), pixels.to(device, torch.float32))
+        rays = rays_in_box(origins, directions, posed_box[0], posed_box[1])
+        sample_generator = torch.Generator(device=device).manual_seed(int(torch.randint(0, 2**62, (1,), generator=self.generator)))
+        samples = sample_along_rays(rays, config.samples_per_ray, posed_grid.is_occupied, generator=sample_generator)
+
+        # Map every kept posed sample to canonical space once; samples without a root are empty.
+        x_rigid, found = self.avatar.correspond(samples.valid_positions(), frame, pose)
+        valid = samples.valid.clone()
+        valid[samples.valid] = found
+        x_rigid = x_rigid[found]
+        positions = torch.zeros_like(samples.positions)
+        positions[valid] = x_rigid
+        canonical_samples = dataclasses.replace(samples, positions=positions, valid=valid)
+
+        noise_std = config.sigma_noise_std if self.step < config.sigma_noise_steps else 0.0
+        field_generator = torch.Generator(device=device).manual_seed(self.step + 1)
+
+        def field_fn(x_canonical: torch.Tensor):
+            return self.avatar.field_at(x_canonical, pose, sigma_noise_std=noise_std, generator=field_generator)
+
+        out = render_rays(canonical_samples, field_fn, background)
+        terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
+        terms.update(self._regulariser_terms(out, x_rigid, pose))
+        loss = total_loss(terms, config.loss_weights)
+
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.step += 1
+
+        num_samples = int(valid.sum())
+        self.samples_seen += num_samples
+        self.rays_seen += rays.num_rays
+        elapsed = time.perf_counter() - started
+        self.seconds += elapsed
+        logs = {name: float(value.detach()) for name, value in terms.items()}
+        logs.update(
+            loss=float(loss.detach()), psnr=psnr_from_mse(float(((out.rgb.detach() - target) ** 2).mean())),
+            beta=float(self.avatar.density.beta), samples=num_samples, step_seconds=elapsed,
+            occupied=self.canonical_grid.occupied_fraction, lr=self.optimizer.param_groups[0]["lr"],
+        )
+        return logs
+
+    # ------------------------------------------------------------------ validation
+    def render_frame(self, index: int, scale: float, num_samples: int) -> ImageRender:
+        """Render dataset frame `index` from its own camera at `scale` x its resolution (white bg)."""
+        data = self.data
+        height, width = data.image_size
+        h, w = max(8, round(height * scale)), max(8, round(width * scale))
+        K = data.K[index].clone()
+        K[0] *= w / width
+        K[1] *= h / height
+        K[0, 2] += 0.5 * w / width - 0.5
+        K[1, 2] += 0.5 * h / height - 0.5
+        self.avatar.eval()
+        return render_avatar_view(
+            self.avatar, self.canonical_grid, data.bone_transforms[index].to(self.device),
+            data.pose_condition[index].to(self.device), K.to(self.device), data.w2c[index].to(self.device),
+            h, w, data.posed_boxes[index].to(self.device), num_samples=num_samples,
+            occupancy_resolution=self.config.occupancy_resolution,
+        )
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Everything needed to continue exactly: weights, Adam, RNG, occupancy, counters."""
+        return {
+            "avatar": self.avatar.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "canonical_grid": self.canonical_grid.state_dict(),
+            "generator": self.generator.get_state(),
+            "step": self.step,
+            "seconds": self.seconds,
+            "samples_seen": self.samples_seen,
+            "rays_seen": self.rays_seen,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.avatar.load_state_dict(state["avatar"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.canonical_grid.load_state_dict(state["canonical_grid"])
+        self.generator.set_state(state["generator"].to(torch.uint8))
+        self.step = int(state["step"])
+        self.seconds = float(state["seconds"])
+        self.samples_seen = int(state["samples_seen"])
+        self.rays_seen = int(state["rays_seen"])
+        self._prepared.clear()

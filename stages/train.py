@@ -1,0 +1,314 @@
+"""`igavatar train`: a dataset artifact -> a model artifact (the trained avatar).
+
+    summary = run_train(TrainOptions(dataset=Path("run/dataset"), out=Path("run/model"), preset="cpu"))
+
+Model layout (schema `model`, version 1):
+    weights.npz          avatar parameters and buffers, canonical occupancy grid (no pickle)
+    subject.npz          skeleton, skinning grid and boxes (copied from the dataset)
+    shape_init.npz       SDF weights after shape initialisation (reused by later runs)
+    training_log.csv     step, losses, PSNR, beta, samples, seconds
+    validation/*.png     ground truth | render | normals of a training and a test frame
+
+While training, checkpoints live in `<out>.work/` beside the artifact; `--resume` continues from
+the last one exactly, and Ctrl-C writes one before exiting.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
+from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, sha256_file, sha256_json
+from igavatar.errors import IgavatarError, InputError
+from igavatar.model.avatar import Avatar
+from igavatar.training.checkpoint import load_state, save_state
+from igavatar.training.config import TrainConfig, preset, with_overrides
+from igavatar.training.data import TrainingData
+from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_samples
+from igavatar.training.trainer import Trainer
+from stages.progress import NULL_PROGRESS, ProgressSink
+from stages.resources import peak_cuda_bytes, peak_ram_bytes
+
+
+class TrainingInterrupted(IgavatarError):
+    """Ctrl-C during training: a checkpoint was written; `--resume` continues from it."""
+
+    exit_code = 130
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """Options of `igavatar train` (see the CLI for each one's help)."""
+
+    dataset: Path
+    out: Path
+    preset: str = "cpu"
+    steps: int | None = None
+    rays_per_step: int | None = None
+    samples_per_ray: int | None = None
+    regularizer: str | None = None
+    smooth_weight: float | None = None
+    seed: int = 0
+    device: str = "auto"
+    resume: bool = False
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda when available, else cpu; 'cuda' without a GPU is a clear error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available to torch here; use --device cpu or auto")
+    if name not in ("cpu", "cuda"):
+        raise InputError(f"--device {name!r}: expected auto, cpu or cuda")
+    return torch.device(name)
+
+
+def resolve_config(options: TrainOptions) -> TrainConfig:
+    """The preset with the CLI's overrides applied."""
+    config = with_overrides(
+        preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
+        samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
+    )
+    if options.smooth_weight is not None:
+        config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, smooth=options.smooth_weight))
+    return config
+
+
+def config_to_json(config: TrainConfig) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(config), default=str))
+
+
+def load_training_data(dataset: Path, manifest: dict) -> TrainingData:
+    """Frames of a dataset artifact as CPU tensors."""
+    frames = np.load(dataset / "frames.npz")
+    names = [str(n) for n in frames["frame_names"]]
+    images, masks = [], []
+    for name in names:
+        image = cv2.imread(str(dataset / "images" / f"{name}.png"), cv2.IMREAD_COLOR)
+        images.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        masks.append(cv2.imread(str(dataset / "masks" / f"{name}.png"), cv2.IMREAD_GRAYSCALE) > 127)
+    train = torch.nonzero(torch.from_numpy(frames["is_train"]), as_tuple=True)[0]
+    if train.numel() == 0:
+        raise InputError(f"{dataset}: the dataset has no training frames (splits.train is empty)")
+    return TrainingData(
+        frame_names=names,
+        images=torch.from_numpy(np.stack(images)),
+        masks=torch.from_numpy(np.stack(masks)),
+        K=torch.from_numpy(frames["K"]).float(),
+        w2c=torch.from_numpy(frames["w2c"]).float(),
+        bone_transforms=torch.from_numpy(frames["bone_transforms"]).float(),
+        pose_condition=torch.from_numpy(frames["pose_condition"]).float(),
+        posed_boxes=torch.from_numpy(frames["posed_boxes"]).float(),
+        train_indices=train,
+    )
+
+
+def build_avatar(config: TrainConfig, subject: dict, pose_dim: int) -> Avatar:
+    """A fresh avatar for a subject (arrays of subject.npz)."""
+    return Avatar(
+        config.avatar,
+        canonical_box=torch.from_numpy(subject["canonical_box"]).float(),
+        skinning_grid=torch.from_numpy(subject["skinning_grid"]).float(),
+        grid_box_min=torch.from_numpy(subject["grid_box_min"]).float(),
+        grid_box_max=torch.from_numpy(subject["grid_box_max"]).float(),
+        pose_dim=pose_dim,
+        init_bones=tuple(int(i) for i in subject["init_bones"]),
+    )
+
+
+def _shape_init_key(config: TrainConfig, template_sha: str | None) -> str:
+    return sha256_json({"sdf": dataclasses.asdict(config.avatar.sdf), "steps": config.shape_init_steps,
+                        "points": config.shape_init_points, "template": template_sha, "seed": config.seed})
+
+
+def _shape_initialise(
+    avatar: Avatar, config: TrainConfig, dataset: Path, subject: dict, cache_paths: list[Path], progress: ProgressSink
+) -> tuple[dict, float]:
+    """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds)."""
+    template = dataset / "template.ply"
+    key = _shape_init_key(config, sha256_file(template) if template.is_file() else None)
+    for path in cache_paths:
+        if path.is_file():
+            cached = load_state(path)
+            if cached.get("key") == key:
+                avatar.sdf_field.load_state_dict(cached["sdf"])
+                progress.status(f"shape initialisation reused from {path}")
+                return cached, 0.0
+    started = time.perf_counter()
+    if template.is_file() and config.shape_init_steps > 0:
+        import trimesh
+
+        mesh = trimesh.load(template, process=False)
+        targets = template_sdf_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces), subject["canonical_box"], seed=config.seed)
+        with progress.task("shape initialisation", total=config.shape_init_steps) as advance:
+            fit_sdf_to_template(
+                avatar.sdf_field, targets, config.shape_init_steps, config.shape_init_points, seed=config.seed,
+                on_step=lambda step, loss: advance(1, loss=f"{loss:.4f}"),
+            )
+    else:
+        progress.status("no template mesh: the SDF starts as a sphere")
+    return {"key": key, "sdf": avatar.sdf_field.state_dict()}, time.perf_counter() - started
+
+
+def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) -> np.ndarray:
+    """ground truth | render | normal map, side by side (uint8 RGB)."""
+    render = trainer.render_frame(index, scale, samples)
+    rgb = (render.rgb.clamp(0, 1).cpu().numpy() * 255).astype(np.uint8)
+    h, w = rgb.shape[:2]
+    gt = trainer.data.images[index].numpy()
+    mask = trainer.data.masks[index].numpy()
+    gt = np.where(mask[..., None], gt, 255).astype(np.uint8)
+    gt = cv2.resize(gt, (w, h), interpolation=cv2.INTER_AREA)
+    normal = render.normal.cpu().numpy()
+    normal_rgb = ((normal * 0.5 + 0.5) * 255).clip(0, 255).astype(np.uint8)
+    opacity = render.opacity.cpu().numpy()[..., None]
+    normal_rgb = (normal_rgb * opacity + 255 * (1 - opacity)).astype(np.uint8)
+    return np.concatenate([gt, rgb, normal_rgb], axis=1)
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    atomic_write_bytes(path, data.tobytes())
+
+
+def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
+    """Train an avatar on a dataset artifact and write the model artifact.
+
+    Raises InputError/ArtifactError for bad inputs and TrainingInterrupted on Ctrl-C (after
+    writing a checkpoint).
+    """
+    started = time.perf_counter()
+    dataset = Path(options.dataset)
+    manifest = read_artifact(dataset, expected="dataset")
+    device = resolve_device(options.device)
+    config = resolve_config(options)
+    torch.manual_seed(config.seed)
+    subject = dict(np.load(dataset / "subject.npz"))
+    data = load_training_data(dataset, manifest)
+    avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
+
+    out = Path(options.out)
+    work = out.with_name(out.name + ".work")
+    work.mkdir(parents=True, exist_ok=True)
+    checkpoint = work / "checkpoint.npz"
+    config_json = config_to_json(config)
+    run_key = sha256_json({"config": config_json, "dataset": sha256_file(dataset / "manifest.json")})
+
+    shape_state, shape_seconds = _shape_initialise(
+        avatar, config, dataset, subject, [work / "shape_init.npz", out / "shape_init.npz"], progress
+    )
+    save_state(work / "shape_init.npz", shape_state)
+    trainer = Trainer(config, data, avatar, device)
+
+    if options.resume:
+        if not checkpoint.is_file():
+            raise InputError(f"--resume: no checkpoint at {checkpoint}; start without --resume")
+        state = load_state(checkpoint)
+        if state.get("run_key") != run_key:
+            raise InputError(
+                f"--resume: {checkpoint} was written with another configuration or dataset; "
+                "use the same options, or start without --resume"
+            )
+        trainer.load_state_dict(state["trainer"])
+        progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
+
+    log_path = work / "training_log.csv"
+    log_rows: list[dict] = list(csv.DictReader(io.StringIO(log_path.read_text()))) if options.resume and log_path.is_file() else []
+    validation_frames = [int(data.train_indices[0])]
+    test_indices = [i for i, name in enumerate(data.frame_names) if name in manifest["data"]["splits"].get("test", [])]
+    if test_indices:
+        validation_frames.append(test_indices[0])
+
+    def save_checkpoint() -> None:
+        save_state(checkpoint, {"run_key": run_key, "trainer": trainer.state_dict()})
+        buffer = io.StringIO()
+        if log_rows:
+            writer = csv.DictWriter(buffer, fieldnames=list(log_rows[0]))
+            writer.writeheader()
+            writer.writerows(log_rows)
+        atomic_write_bytes(log_path, buffer.getvalue().encode())
+
+    last: dict[str, float] = {}
+    try:
+        with progress.task("training", total=trainer.total_steps) as advance:
+            advance(trainer.step)
+            while trainer.step < trainer.total_steps:
+                last = trainer.train_step()
+                if trainer.step % config.log_every == 0 or trainer.step == trainer.total_steps:
+                    log_rows.append({"step": trainer.step, **{k: f"{v:.6g}" for k, v in last.items()}})
+                if config.checkpoint_every and trainer.step % config.checkpoint_every == 0:
+                    save_checkpoint()
+                if config.validate_every and trainer.step % config.validate_every == 0 and trainer.step < trainer.total_steps:
+                    for index in validation_frames[:1]:
+                        _write_png(work / "validation" / f"step_{trainer.step:06d}.png",
+                                   _validation_png(trainer, index, config.validation_scale, config.validation_samples))
+                rate = trainer.step / max(trainer.seconds, 1e-9)
+                advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
+    except KeyboardInterrupt:
+        save_checkpoint()
+        raise TrainingInterrupted(
+            f"training interrupted at step {trainer.step}; checkpoint saved to {checkpoint} "
+            "(continue with `igavatar train --resume` and the same options)"
+        ) from None
+    save_checkpoint()
+
+    train_seconds = trainer.seconds
+    tick = time.perf_counter()
+    validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples) for i in validation_frames}
+    render_seconds = time.perf_counter() - tick
+
+    with atomic_directory(out) as tmp:
+        save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
+        shutil.copyfile(dataset / "subject.npz", tmp / "subject.npz")
+        save_state(tmp / "shape_init.npz", shape_state)
+        shutil.copyfile(log_path, tmp / "training_log.csv")
+        for name, image in validation.items():
+            _write_png(tmp / "validation" / f"{name}.png", image)
+        steps_done = trainer.step
+        data_json = {
+            "dataset": str(dataset),
+            "body_model": manifest["data"]["body_model"],
+            "joint_names": manifest["data"]["joint_names"],
+            "pose_dim": manifest["data"]["pose_dim"],
+            "image_size": manifest["data"]["image_size"],
+            "canonical_box": manifest["data"]["canonical_box"],
+            "splits": manifest["data"]["splits"],
+            "steps": steps_done,
+            "final": {k: last.get(k) for k in ("loss", "psnr", "rgb", "alpha", "eikonal", "smooth", "beta") if k in last},
+            "speed": {
+                "iterations_per_second": steps_done / max(train_seconds, 1e-9),
+                "rays_per_second": trainer.rays_seen / max(train_seconds, 1e-9),
+                "samples_per_second": trainer.samples_seen / max(train_seconds, 1e-9),
+                "threads": torch.get_num_threads(),
+            },
+            "validation_frames": list(validation),
+        }
+        build_manifest(
+            "model", tmp, stage="train", config=config_json, inputs=[InputRecord(dataset, "dataset")],
+            data=data_json, seed=config.seed, device=str(device),
+            timings={"shape_init_s": shape_seconds, "train_s": train_seconds, "validation_render_s": render_seconds,
+                     "total_s": time.perf_counter() - started},
+            peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()},
+        )
+    shutil.rmtree(work, ignore_errors=True)
+    return {
+        "model": str(out), "steps": steps_done, "device": str(device),
+        "train_seconds": round(train_seconds, 1),
+        "it_per_s": round(data_json["speed"]["iterations_per_second"], 2),
+        "samples_per_s": round(data_json["speed"]["samples_per_second"]),
+        "final_psnr": round(last.get("psnr", float("nan")), 2),
+        "validation": [str(out / "validation" / f"{n}.png") for n in validation],
+        "peak_ram_gb": round(peak_ram_bytes() / 2**30, 2),
+    }

@@ -1,0 +1,120 @@
+"""Training end to end with the tiny preset: artifact, determinism, exact resume, what is optimised."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from igavatar.artifacts.manifest import read_artifact
+from igavatar.training.checkpoint import flatten, load_state, save_state
+from igavatar.training.config import preset
+from igavatar.training.trainer import Trainer
+from igavatar_cli.main import app
+from stages.train import TrainOptions, build_avatar, load_training_data, resolve_config, run_train
+
+
+def _trainer(dataset: Path, **overrides) -> Trainer:
+    manifest = read_artifact(dataset, expected="dataset")
+    config = dataclasses.replace(preset("tiny"), **overrides)
+    torch.manual_seed(config.seed)
+    subject = dict(np.load(dataset / "subject.npz"))
+    avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
+    return Trainer(config, load_training_data(dataset, manifest), avatar)
+
+
+@pytest.fixture(scope="module")
+def tiny_model(small_run, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("model") / "model"
+    run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
+    return out
+
+
+def test_tiny_training_writes_a_valid_model_artifact(tiny_model):
+    manifest = read_artifact(tiny_model, expected="model")
+    data = manifest["data"]
+    assert data["steps"] == 6 and data["body_model"] == "anny"
+    assert data["speed"]["iterations_per_second"] > 0 and data["speed"]["samples_per_second"] > 0
+    assert manifest["peak_memory"]["ram_bytes"] > 0 and manifest["config"]["preset"] == "tiny"
+    assert np.isfinite(data["final"]["loss"])
+    assert len(list((tiny_model / "validation").glob("*.png"))) == 2
+    tensors = [v for v in flatten(load_state(tiny_model / "weights.npz")).values() if v.dtype.kind == "f"]
+    assert tensors and all(np.isfinite(v).all() for v in tensors)
+    assert not tiny_model.with_name("model.work").exists(), "checkpoint directory left behind"
+
+
+def test_training_is_deterministic_with_a_seed(small_run):
+    runs = []
+    for _ in range(2):
+        trainer = _trainer(small_run / "dataset", steps=3)
+        logs = [trainer.train_step() for _ in range(3)]
+        runs.append((logs, trainer.avatar.state_dict()))
+    assert [l["loss"] for l in runs[0][0]] == [l["loss"] for l in runs[1][0]]
+    first, second = flatten(runs[0][1]), flatten(runs[1][1])
+    assert first.keys() == second.keys()
+    for key, value in first.items():
+        assert np.array_equal(value, second[key]), key
+
+
+def test_resume_continues_exactly(small_run, tmp_path):
+    straight = _trainer(small_run / "dataset", steps=4)
+    for _ in range(4):
+        straight.train_step()
+
+    first = _trainer(small_run / "dataset", steps=4)
+    for _ in range(2):
+        first.train_step()
+    save_state(tmp_path / "ckpt.npz", {"trainer": first.state_dict()})
+    resumed = _trainer(small_run / "dataset", steps=4)
+    resumed.load_state_dict(load_state(tmp_path / "ckpt.npz")["trainer"])
+    for _ in range(2):
+        resumed.train_step()
+    expected, got = flatten(straight.avatar.state_dict()), flatten(resumed.avatar.state_dict())
+    for key, value in expected.items():
+        assert np.array_equal(got[key], value), key
+
+
+def test_every_learned_part_is_optimised_including_non_rigid(small_run):
+    trainer = _trainer(small_run / "dataset", steps=4, nonrigid_start_fraction=0.0)
+    optimised = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
+    names = {n for n, p in trainer.avatar.named_parameters() if id(p) not in optimised}
+    assert not names, f"parameters missing from the optimiser: {names}"
+    before = {n: p.detach().clone() for n, p in trainer.avatar.named_parameters() if n.startswith("nonrigid.")}
+    for _ in range(3):
+        trainer.train_step()
+    assert trainer.avatar.nonrigid.enabled
+    changed = [n for n, p in trainer.avatar.named_parameters() if n in before and not torch.equal(p, before[n])]
+    assert changed, "non-rigid parameters did not change"
+
+
+@pytest.mark.parametrize("regularizer", ["none", "fd-eikonal", "curvature", "fd-eikonal+curvature"])
+def test_ablation_regularisers_train(small_run, regularizer):
+    trainer = _trainer(small_run / "dataset", steps=2, regularizer=regularizer)
+    logs = [trainer.train_step() for _ in range(2)]
+    expected = {"none": {"eikonal"}, "fd-eikonal": {"fd_eikonal"}, "curvature": {"eikonal", "curvature"},
+                "fd-eikonal+curvature": {"fd_eikonal", "curvature"}}[regularizer]
+    assert expected <= set(logs[-1]) and "smooth" not in logs[-1]
+    assert all(np.isfinite(l["loss"]) for l in logs)
+
+
+def test_cli_train_resume_without_checkpoint_is_a_clear_error(small_run, cli_runner, tmp_path):
+    result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "m"),
+                                     "--preset", "tiny", "--resume"])
+    assert result.exit_code == 2 and "no checkpoint" in result.output
+
+
+def test_cli_train_on_a_capture_is_the_wrong_artifact_kind(small_run, cli_runner, tmp_path):
+    result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "capture"), "--out", str(tmp_path / "m"),
+                                     "--preset", "tiny"])
+    assert result.exit_code == 3 and "needs a dataset artifact" in result.output
+    assert not (tmp_path / "m").exists()
+
+
+def test_unknown_preset_and_regulariser(small_run, cli_runner, tmp_path):
+    for args, message in ((["--preset", "huge"], "unknown"), (["--regularizer", "magic"], "expected one of")):
+        result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "m"), *args])
+        assert result.exit_code == 2 and message in result.output
