@@ -9,6 +9,7 @@ Dataset layout (schema `dataset`, version 1):
                          canonical -> posed world, pose_condition (N,P), posed_boxes (N,2,3),
                          posed_joints (N,J,3), is_train (N,), is_test (N,)
     subject.npz          parents (J,), rest_joints (J,3), canonical_joints (J,3), joint_names (J,),
+                         canonical_rotations (J,3,3) of the canonical pose relative to the rest pose,
                          init_bones (I,) major bones root finding starts from,
                          skinning_grid (J,D,H,W), grid_box_min (3,), grid_box_max (3,),
                          canonical_box (2,3)
@@ -213,6 +214,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             parents=subject.skeleton.parents.astype(np.int64),
             rest_joints=np.asarray(subject.skeleton.rest_joints, np.float32),
             canonical_joints=canonical.canonical_joints.numpy().astype(np.float32),
+            canonical_rotations=subject.canonical_rotations.numpy().astype(np.float32),
             joint_names=np.array(subject.skeleton.joint_names, dtype=np.str_),
             init_bones=np.array(subject.init_bones, dtype=np.int64),
             skinning_grid=skinning_grid.numpy().astype(np.float32),

@@ -285,6 +285,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
             "image_size": manifest["data"]["image_size"],
             "canonical_box": manifest["data"]["canonical_box"],
             "splits": manifest["data"]["splits"],
+            "subject": manifest["data"].get("subject", {}),
             "steps": steps_done,
             "final": {k: last.get(k) for k in ("loss", "psnr", "rgb", "alpha", "eikonal", "smooth", "beta") if k in last},
             "speed": {

@@ -119,6 +119,42 @@ def subject_from_capture(
     )
 
 
+@dataclass(frozen=True)
+class PosedFrames:
+    """Bone transforms and conditioning of a pose sequence (float32 tensors).
+
+    Attributes:
+        bone_transforms: (N, J, 4, 4) canonical -> posed world.
+        pose_condition: (N, 3 * (J - 1)) axis-angle of the non-root joints (non-rigid input).
+        posed_joints: (N, J, 3) world joint positions.
+    """
+
+    bone_transforms: torch.Tensor
+    pose_condition: torch.Tensor
+    posed_joints: torch.Tensor
+
+
+def pose_frames(
+    parents: np.ndarray,
+    rest_joints: torch.Tensor,
+    canonical_rotations: torch.Tensor,
+    local_rotations: torch.Tensor,
+    root_translation: torch.Tensor,
+) -> PosedFrames:
+    """Pose a skeleton: local rotations (N, J, 3, 3) + root translation (N, 3) -> PosedFrames.
+
+    `canonical_rotations` (J, 3, 3) is the canonical (star) pose the avatar lives in; every
+    rotation is relative to the rest pose (`rest_joints` (J, 3)).
+    """
+    global_canonical = forward_kinematics(canonical_rotations, rest_joints, parents)
+    global_posed = forward_kinematics(local_rotations, rest_joints, parents, root_translation)
+    return PosedFrames(
+        bone_transforms=bone_transforms(global_posed, global_canonical),
+        pose_condition=matrix_to_axis_angle(local_rotations[:, 1:]).flatten(1),
+        posed_joints=global_posed[..., :3, 3],
+    )
+
+
 def canonicalize(subject: PosedSubject) -> CanonicalSubject:
     """Bone transforms from the canonical pose to every frame, and the canonical template."""
     skeleton = subject.skeleton
@@ -127,8 +163,8 @@ def canonicalize(subject: PosedSubject) -> CanonicalSubject:
     identity = torch.eye(3).expand(skeleton.num_joints, 3, 3)
     global_rest = forward_kinematics(identity, rest, parents)
     global_canonical = forward_kinematics(subject.canonical_rotations, rest, parents)
-    global_posed = forward_kinematics(subject.local_rotations, rest, parents, subject.root_translation)
-    transforms = bone_transforms(global_posed, global_canonical)
+    frames = pose_frames(parents, rest, subject.canonical_rotations, subject.local_rotations, subject.root_translation)
+    transforms = frames.bone_transforms
 
     template = None
     if subject.template_vertices_rest is not None:
@@ -137,15 +173,14 @@ def canonicalize(subject: PosedSubject) -> CanonicalSubject:
         posed = linear_blend_skinning(template, subject.template_weights, transforms)
         boxes = torch.stack((posed.amin(dim=1), posed.amax(dim=1)), dim=1)
     else:
-        joints = global_posed[..., :3, 3]
+        joints = frames.posed_joints
         boxes = torch.stack((joints.amin(dim=1), joints.amax(dim=1)), dim=1)
 
-    pose_condition = matrix_to_axis_angle(subject.local_rotations[:, 1:]).flatten(1)
     return CanonicalSubject(
         canonical_joints=global_canonical[:, :3, 3],
         bone_transforms=transforms,
-        posed_joints=global_posed[..., :3, 3],
-        pose_condition=pose_condition,
+        posed_joints=frames.posed_joints,
+        pose_condition=frames.pose_condition,
         template_vertices=template,
         posed_template_boxes=boxes,
     )

@@ -9,6 +9,8 @@ default synthetic subject in about ten minutes on two CPU cores; `tiny` is for t
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -153,3 +155,26 @@ def with_overrides(config: TrainConfig, **overrides) -> TrainConfig:
         if name in overrides and overrides[name] < 1:
             raise InputError(f"--{name.replace('_', '-')} {overrides[name]}: must be >= 1")
     return replace(config, **overrides)
+
+
+def _from_json(cls, value):
+    """Rebuild dataclass `cls` from its JSON form (nested dataclasses; lists back to tuples)."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for item in dataclasses.fields(cls):
+        if item.name not in value:
+            continue  # written by an older version: keep the default
+        raw = value[item.name]
+        kind = hints[item.name]
+        if dataclasses.is_dataclass(kind):
+            kwargs[item.name] = _from_json(kind, raw)
+        elif isinstance(raw, list):
+            kwargs[item.name] = tuple(raw)
+        else:
+            kwargs[item.name] = raw
+    return cls(**kwargs)
+
+
+def config_from_json(value: dict) -> TrainConfig:
+    """The TrainConfig recorded (as `dataclasses.asdict` JSON) in a model's manifest."""
+    return _from_json(TrainConfig, value)
