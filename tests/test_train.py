@@ -91,14 +91,23 @@ def test_every_learned_part_is_optimised_including_non_rigid(small_run):
     assert changed, "non-rigid parameters did not change"
 
 
-@pytest.mark.parametrize("regularizer", ["none", "fd-eikonal", "curvature", "fd-eikonal+curvature"])
+@pytest.mark.parametrize("regularizer", ["none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe"])
 def test_ablation_regularisers_train(small_run, regularizer):
-    trainer = _trainer(small_run / "dataset", steps=2, regularizer=regularizer)
+    from igavatar.training.config import with_overrides
+
+    config = with_overrides(dataclasses.replace(preset("tiny"), steps=8), regularizer=regularizer)
+    manifest = read_artifact(small_run / "dataset", expected="dataset")
+    torch.manual_seed(0)
+    avatar = build_avatar(config, dict(np.load(small_run / "dataset" / "subject.npz")), manifest["data"]["pose_dim"])
+    trainer = Trainer(config, load_training_data(small_run / "dataset", manifest), avatar)
     logs = [trainer.train_step() for _ in range(2)]
     expected = {"none": {"eikonal"}, "fd-eikonal": {"fd_eikonal"}, "curvature": {"eikonal", "curvature"},
-                "fd-eikonal+curvature": {"fd_eikonal", "curvature"}}[regularizer]
+                "fd-eikonal+curvature": {"fd_eikonal", "curvature"}, "hybrid-pe": {"eikonal"}}[regularizer]
     assert expected <= set(logs[-1]) and "smooth" not in logs[-1]
     assert all(np.isfinite(l["loss"]) for l in logs)
+    if regularizer == "hybrid-pe":
+        assert trainer.avatar.config.sdf.pe_frequencies == config.hybrid_pe_frequencies > 0
+        assert trainer.avatar.sdf_field.level_weights[-1] < 1, "fine levels should still be closed"
 
 
 def test_cli_train_resume_without_checkpoint_is_a_clear_error(small_run, cli_runner, tmp_path):

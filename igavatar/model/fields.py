@@ -65,6 +65,10 @@ class SDFFieldConfig:
     sphere_radius: float = 0.5
     """Radius in metres of the sphere, centred on the box, that the SDF represents at initialisation."""
 
+    pe_frequencies: int = 0
+    """Fourier frequencies of a positional encoding added to the MLP input (the hybrid encoding
+    of the paper's `hybrid-pe` ablation, after Shinobi); 0 = off (InstantGeoAvatar)."""
+
     def __post_init__(self) -> None:
         name = "SDFFieldConfig"
         _require(name, "hidden_dim", self.hidden_dim, self.hidden_dim >= 4, "must be >= 4")
@@ -72,6 +76,7 @@ class SDFFieldConfig:
         _require(name, "feature_dim", self.feature_dim, self.feature_dim >= 1, "must be >= 1")
         _require(name, "softplus_beta", self.softplus_beta, self.softplus_beta > 0, "must be > 0")
         _require(name, "sphere_radius", self.sphere_radius, self.sphere_radius > 0, "must be > 0")
+        _require(name, "pe_frequencies", self.pe_frequencies, self.pe_frequencies >= 0, "must be >= 0")
 
 
 class SDFField(nn.Module):
@@ -90,7 +95,13 @@ class SDFField(nn.Module):
         half_extent = 0.5 * (self.encoding.box_max - self.encoding.box_min)
         self.register_buffer("centre", centre)
         self.register_buffer("input_scale", half_extent.max().reshape(()))
-        dims = [3 + self.encoding.output_dim] + [config.hidden_dim] * config.n_hidden_layers + [config.feature_dim]
+        # Per-level multipliers of the hash features: all ones except while the hybrid encoding
+        # opens its levels coarse-to-fine (set_level_weights).
+        self.register_buffer("level_weights", torch.ones(config.hash_grid.n_levels))
+        self.register_buffer(
+            "pe_omegas", math.pi * 2.0 ** torch.arange(config.pe_frequencies, dtype=torch.float32)
+        )
+        dims = [3 + 6 * config.pe_frequencies + self.encoding.output_dim] + [config.hidden_dim] * config.n_hidden_layers + [config.feature_dim]
         self.layers = nn.ModuleList(nn.Linear(d_in, d_out) for d_in, d_out in zip(dims[:-1], dims[1:]))
         self.reset_to_sphere()
 
@@ -119,7 +130,10 @@ class SDFField(nn.Module):
         first.weight.zero_()
         first.bias.zero_()
         first.weight[:, :3] = (row_norm * directions).to(first.weight.dtype)
-        nn.init.normal_(first.weight[:, 3:], mean=0.0, std=math.sqrt(2.0 / hidden))
+        # Positional-encoding columns (hybrid-pe only) start at zero: their inputs are O(1) and
+        # would bend the sphere; they still receive gradients.
+        n_pe = 6 * cfg.pe_frequencies
+        nn.init.normal_(first.weight[:, 3 + n_pe:], mean=0.0, std=math.sqrt(2.0 / hidden))
         for layer in self.layers[1:-1]:
             layer.weight.copy_(torch.eye(hidden, dtype=layer.weight.dtype))
             layer.bias.zero_()
@@ -136,9 +150,27 @@ class SDFField(nn.Module):
         on_sphere = self.centre.double() + cfg.sphere_radius * fibonacci_sphere(1024)
         last.bias[0] = -self.forward(on_sphere.to(last.weight.dtype))[0].mean()
 
+    def set_level_weights(self, progress: float) -> None:
+        """Open the hash levels coarse-to-fine: level l gets clamp(progress * L - l, 0, 1), level 0 always 1.
+
+        progress >= 1 restores plain hash features (the default state).
+        """
+        levels = torch.arange(self.config.hash_grid.n_levels, dtype=self.level_weights.dtype, device=self.level_weights.device)
+        weights = (progress * self.config.hash_grid.n_levels - levels + 1.0).clamp(0.0, 1.0)
+        self.level_weights.copy_(weights)
+
+    def _feature_scale(self, dtype: torch.dtype) -> torch.Tensor:
+        """(C,) multipliers of the encoded features (each level's weight, repeated per feature)."""
+        return self.level_weights.to(dtype).repeat_interleave(self.config.hash_grid.n_features_per_level)
+
     def _mlp_input(self, x_canonical: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
         x_centred = (x_canonical.to(encoded.dtype) - self.centre.to(encoded.dtype)) / self.input_scale.to(encoded.dtype)
-        return torch.cat((x_centred, encoded), dim=-1)
+        parts = [x_centred]
+        if self.config.pe_frequencies:
+            angles = x_centred[:, None, :] * self.pe_omegas.to(encoded.dtype)[None, :, None]  # (P, K, 3)
+            parts.append(torch.stack((angles.sin(), angles.cos()), dim=2).flatten(1))  # (P, K*2*3)
+        parts.append(encoded * self._feature_scale(encoded.dtype))
+        return torch.cat(parts, dim=-1)
 
     def forward(self, x_canonical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``x_canonical (P, 3)`` -> ``(sdf (P,), feature (P, feature_dim))``, ``sdf = feature[:, 0]``."""
@@ -171,10 +203,21 @@ class SDFField(nn.Module):
         grad_h = self.layers[-1].weight[0]  # (hidden,), broadcasts over points
         for layer, slope in zip(reversed(self.layers[:-1]), reversed(slopes)):
             grad_h = (grad_h * slope) @ layer.weight
-        grad_input = grad_h  # (P, 3 + C): d sdf / d (x_centred, encoded)
-        grad_sdf = grad_input[:, :3] / self.input_scale.to(grad_input.dtype) + torch.einsum(
-            "pc,pcd->pd", grad_input[:, 3:], jacobian
-        )
+        grad_input = grad_h  # (P, 3 + 6K + C): d sdf / d (x_centred, pe, encoded)
+        scale = self.input_scale.to(grad_input.dtype)
+        n_pe = 6 * self.config.pe_frequencies
+        grad_x_centred = grad_input[:, :3]
+        if n_pe:
+            x_centred = (x_canonical.to(grad_input.dtype) - self.centre.to(grad_input.dtype)) / scale
+            omegas = self.pe_omegas.to(grad_input.dtype)[None, :, None]
+            angles = x_centred[:, None, :] * omegas  # (P, K, 3)
+            grad_pe = grad_input[:, 3:3 + n_pe].reshape(-1, self.config.pe_frequencies, 2, 3)
+            # d sin(w x)/dx = w cos(w x); d cos(w x)/dx = -w sin(w x), per axis.
+            grad_x_centred = grad_x_centred + (
+                grad_pe[:, :, 0] * omegas * angles.cos() - grad_pe[:, :, 1] * omegas * angles.sin()
+            ).sum(dim=1)
+        grad_encoded = grad_input[:, 3 + n_pe:] * self._feature_scale(grad_input.dtype)
+        grad_sdf = grad_x_centred / scale + torch.einsum("pc,pcd->pd", grad_encoded, jacobian)
         return feature[:, 0], feature, grad_sdf
 
 

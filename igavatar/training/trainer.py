@@ -101,6 +101,9 @@ class Trainer:
         window = max(1, int(self.config.nonrigid_window_fraction * self.total_steps))
         self.avatar.nonrigid.set_enabled(self.step >= start)
         self.avatar.nonrigid.set_window(min(1.0, max(0.0, (self.step - start) / window)))
+        if self.config.regularizer == "hybrid-pe":
+            anneal = max(1, int(self.config.hybrid_pe_anneal_fraction * self.total_steps))
+            self.avatar.sdf_field.set_level_weights(self.step / anneal)
 
     def prepared_frame(self, index: int) -> PreparedFrame:
         """The deformer's per-frame precomputation, cached (the skinning grid is fixed)."""
