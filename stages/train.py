@@ -31,6 +31,7 @@ import torch
 from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
 from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, sha256_file, sha256_json
 from igavatar.errors import IgavatarError, InputError
+from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import load_state, save_state
 from igavatar.training.config import TrainConfig, preset, with_overrides
@@ -162,8 +163,8 @@ def _shape_initialise(
     return {"key": key, "sdf": avatar.sdf_field.state_dict()}, time.perf_counter() - started
 
 
-def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) -> np.ndarray:
-    """ground truth | render | normal map, side by side (uint8 RGB)."""
+def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) -> tuple[np.ndarray, float]:
+    """ground truth | render | normal map side by side (uint8 RGB), and the render's PSNR on white."""
     render = trainer.render_frame(index, scale, samples)
     rgb = (render.rgb.clamp(0, 1).cpu().numpy() * 255).astype(np.uint8)
     h, w = rgb.shape[:2]
@@ -175,7 +176,8 @@ def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) ->
     normal_rgb = ((normal * 0.5 + 0.5) * 255).clip(0, 255).astype(np.uint8)
     opacity = render.opacity.cpu().numpy()[..., None]
     normal_rgb = (normal_rgb * opacity + 255 * (1 - opacity)).astype(np.uint8)
-    return np.concatenate([gt, rgb, normal_rgb], axis=1)
+    psnr = image_psnr(rgb.astype(np.float64) / 255.0, gt.astype(np.float64) / 255.0)
+    return np.concatenate([gt, rgb, normal_rgb], axis=1), float(psnr)
 
 
 def _write_png(path: Path, rgb: np.ndarray) -> None:
@@ -252,8 +254,8 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
                     save_checkpoint()
                 if config.validate_every and trainer.step % config.validate_every == 0 and trainer.step < trainer.total_steps:
                     for index in validation_frames[:1]:
-                        _write_png(work / "validation" / f"step_{trainer.step:06d}.png",
-                                   _validation_png(trainer, index, config.validation_scale, config.validation_samples))
+                        panel, _ = _validation_png(trainer, index, config.validation_scale, config.validation_samples)
+                        _write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
                 rate = trainer.step / max(trainer.seconds, 1e-9)
                 advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
     except KeyboardInterrupt:
@@ -274,7 +276,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
         shutil.copyfile(dataset / "subject.npz", tmp / "subject.npz")
         save_state(tmp / "shape_init.npz", shape_state)
         shutil.copyfile(log_path, tmp / "training_log.csv")
-        for name, image in validation.items():
+        for name, (image, _) in validation.items():
             _write_png(tmp / "validation" / f"{name}.png", image)
         steps_done = trainer.step
         data_json = {
@@ -295,6 +297,8 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
                 "threads": torch.get_num_threads(),
             },
             "validation_frames": list(validation),
+            "validation_psnr": {name: psnr for name, (_, psnr) in validation.items()},
+            "validation_scale": config.validation_scale,
         }
         build_manifest(
             "model", tmp, stage="train", config=config_json, inputs=[InputRecord(dataset, "dataset")],
@@ -309,7 +313,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
         "train_seconds": round(train_seconds, 1),
         "it_per_s": round(data_json["speed"]["iterations_per_second"], 2),
         "samples_per_s": round(data_json["speed"]["samples_per_second"]),
-        "final_psnr": round(last.get("psnr", float("nan")), 2),
+        "validation_psnr": {name: round(psnr, 2) for name, (_, psnr) in validation.items()},
         "validation": [str(out / "validation" / f"{n}.png") for n in validation],
         "peak_ram_gb": round(peak_ram_bytes() / 2**30, 2),
     }

@@ -66,13 +66,18 @@ def _validation_message(error: jsonschema.ValidationError) -> str:
     return f"{where}: {error.message}"
 
 
+def first_schema_error(schema_name: str, value: Any) -> str | None:
+    """'field.path: message' of the first way `value` fails schema `schema_name`, or None if valid."""
+    validator = jsonschema.Draft202012Validator(load_schema(schema_name))
+    errors = sorted(validator.iter_errors(value), key=lambda e: list(e.absolute_path))
+    return _validation_message(errors[0]) if errors else None
+
+
 def validate_against(schema_name: str, value: Any, what: str) -> None:
     """Raise ArtifactError naming `what` and the first offending field if `value` fails the schema."""
-    schema = load_schema(schema_name)
-    validator = jsonschema.Draft202012Validator(schema)
-    errors = sorted(validator.iter_errors(value), key=lambda e: list(e.absolute_path))
-    if errors:
-        raise ArtifactError(f"{what} does not match schema {schema_name}: {_validation_message(errors[0])}")
+    error = first_schema_error(schema_name, value)
+    if error is not None:
+        raise ArtifactError(f"{what} does not match schema {schema_name}: {error}")
 
 
 @dataclass(frozen=True)

@@ -14,11 +14,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
-import jsonschema
 import numpy as np
 
+from igavatar.artifacts.manifest import first_schema_error
 from igavatar.errors import InputError
-from schemas import load_schema
 
 CAPTURE_FILE = "capture.json"
 
@@ -143,10 +142,9 @@ def read_capture_v1(root: Path) -> CaptureV1:
             f"{meta_path}: unknown body model {meta.get('body_model')!r} in key 'body_model'; "
             f"expected one of {', '.join(POSE_LAYOUTS)}"
         )
-    errors = sorted(jsonschema.Draft202012Validator(load_schema("capture")).iter_errors(meta), key=lambda e: list(e.absolute_path))
-    if errors:
-        where = ".".join(str(p) for p in errors[0].absolute_path) or "(top level)"
-        raise InputError(f"{meta_path}: key '{where}': {errors[0].message}")
+    error = first_schema_error("capture", meta)
+    if error is not None:
+        raise InputError(f"{meta_path}: {error}")
 
     frames: list[str] = list(meta["frames"])
     frame_set = set(frames)
