@@ -22,7 +22,7 @@ def test_version(cli_runner):
     assert result.exit_code == 0 and __version__ in result.output
 
 
-@pytest.mark.parametrize("command", ["animate", "eval"])
+@pytest.mark.parametrize("command", ["animate"])
 def test_stages_not_built_yet_say_so_and_fail(cli_runner, command, tmp_path):
     result = cli_runner.invoke(app, [command, "--run-dir", str(tmp_path)])
     assert result.exit_code != 0
