@@ -180,23 +180,149 @@ def train(
 
 @app.command()
 @user_errors
-def export(run_dir: RunDir = DEFAULT_RUN_DIR) -> None:
-    """Extract canonical or posed meshes (marching cubes, pymeshlab cleanup, --pose). Not available yet."""
-    _not_available("export", "it needs a trained model")
+def export(
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\[default: RUN_DIR/mesh].")] = None,
+    run_dir: RunDir = DEFAULT_RUN_DIR,
+    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colours), glb (rigged).")] = "ply,obj,glb",
+    resolution: Annotated[
+        int, typer.Option(help="Marching-cubes samples on the longest axis of the surface box (the paper's 512; ~20-45 s on 2 CPU cores).", min=16)
+    ] = 512,
+    coarse_resolution: Annotated[int, typer.Option(help="Samples of the coarse pass that finds the surface box.", min=8)] = 64,
+    min_component_ratio: Annotated[
+        Optional[float], typer.Option(help="Keep components with at least this fraction of the largest one's faces (default: only the largest).")
+    ] = None,
+    taubin_steps: Annotated[int, typer.Option(help="Taubin smoothing iterations (0: none).", min=0)] = 0,
+    target_faces: Annotated[Optional[int], typer.Option(help="Decimate to at most this many faces.", min=4)] = None,
+    pose: Annotated[
+        Optional[Path], typer.Option(help="Pose the avatar: a pose .npz (capture v1 Anny poses.npz), a capture directory or a dataset artifact.")
+    ] = None,
+    frame: Annotated[Optional[int], typer.Option(help="Frame of --pose to export (default: 0).", min=0)] = None,
+    all_frames: Annotated[bool, typer.Option("--all", help="Export every frame of --pose.")] = False,
+    nonrigid: Annotated[bool, typer.Option(help="Apply the pose-conditioned non-rigid offset to posed meshes.")] = True,
+    posed_marching: Annotated[
+        bool, typer.Option(help="Also run marching cubes in posed space through the deformer (slow), to compare.")
+    ] = False,
+    exr: Annotated[bool, typer.Option(help="Write depth and normal maps (OpenEXR) of frontal views of each mesh.")] = False,
+    exr_size: Annotated[int, typer.Option(help="Size of the EXR maps in pixels.", min=8)] = 512,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
+    force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
+    quiet: Quiet = False,
+    json_out: JsonOut = False,
+) -> None:
+    """Extract the canonical mesh (PLY/OBJ/rigged GLB) and, with --pose, posed meshes in world coordinates."""
+    from igavatar_cli.progress import RichProgress
+    from stages.export import ExportOptions, parse_formats, run_export
+
+    layout = RunLayout(run_dir)
+    options = ExportOptions(
+        model=model or layout.model, out=out or layout.mesh, formats=parse_formats(formats), resolution=resolution,
+        coarse_resolution=coarse_resolution, min_component_ratio=min_component_ratio, taubin_steps=taubin_steps,
+        target_faces=target_faces, pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
+        posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
+    )
+    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+        summary = run_export(options, progress=progress)
+    _print_summary(summary, json_out)
 
 
 @app.command()
 @user_errors
-def animate(run_dir: RunDir = DEFAULT_RUN_DIR) -> None:
-    """Render the avatar driven by new poses. Not available yet."""
-    _not_available("animate", "it needs a trained model")
+def animate(
+    motion_arg: Annotated[
+        Optional[str], typer.Argument(metavar="[MOTION]", help="Procedural motion (walk, turn, arm_raise, squat, turntable), a pose .npz (Anny, SMPL, AMASS, skeleton), a capture directory or a dataset.")
+    ] = None,
+    motion: Annotated[Optional[str], typer.Option("--motion", help="Same as MOTION \\[default: walk].")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Animation directory to write \\[default: RUN_DIR/animation].")] = None,
+    run_dir: RunDir = DEFAULT_RUN_DIR,
+    seconds: Annotated[float, typer.Option(help="Length of a procedural motion in seconds.")] = 2.0,
+    fps: Annotated[Optional[float], typer.Option(help="Frames per second of the motion and the video \\[default: the pose file's, else 30].")] = None,
+    frames: Annotated[Optional[int], typer.Option(help="Number of frames (procedural: instead of --seconds; pose file: its first N).", min=1)] = None,
+    travel: Annotated[bool, typer.Option(help="Let the walk move forward (~0.8 m/s) instead of walking in place.")] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the procedural motion (pace, amplitudes).")] = 0,
+    camera: Annotated[str, typer.Option(help="turntable (orbits the subject), front (static) or capture (the dataset's first camera).")] = "turntable",
+    camera_file: Annotated[Optional[Path], typer.Option(help="npz with K (3,3), w2c (4,4) (or per frame), height, width; overrides --camera.")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(help="Dataset for --camera capture \\[default: the one the model was trained on].")] = None,
+    revolutions: Annotated[float, typer.Option(help="Turns of the turntable camera over the animation.")] = 1.0,
+    resolution: Annotated[int, typer.Option(help="Longer image side in pixels.", min=8)] = 256,
+    samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\[default: the model's validation setting].", min=1)] = None,
+    meshes: Annotated[bool, typer.Option(help="Also write the posed mesh of every frame (meshes/NNNN.ply).")] = False,
+    mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh for --meshes.", min=16)] = 256,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory (Anny pose files) \\[default: ~/.cache/anny].")] = None,
+    quiet: Quiet = False,
+    json_out: JsonOut = False,
+) -> None:
+    """Render the avatar driven by a motion: PNG frames, an mp4 and optionally posed meshes per frame."""
+    from igavatar.errors import InputError
+    from igavatar_cli.progress import RichProgress
+    from stages.animate import AnimateOptions, run_animate
+
+    if motion_arg is not None and motion is not None and motion_arg != motion:
+        raise InputError(f"MOTION {motion_arg!r} and --motion {motion!r} disagree; give one of them")
+    layout = RunLayout(run_dir)
+    options = AnimateOptions(
+        model=model or layout.model, out=out or layout.animation, motion=motion_arg or motion or "walk",
+        seconds=seconds, fps=fps, frames=frames, travel=travel, seed=seed, camera=camera, camera_file=camera_file,
+        dataset=dataset, revolutions=revolutions, resolution=resolution, samples=samples, meshes=meshes,
+        mesh_resolution=mesh_resolution, device=device, anny_cache=anny_cache,
+    )
+    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+        summary = run_animate(options, progress=progress)
+    _print_summary(summary, json_out)
 
 
 @app.command(name="eval")
 @user_errors
-def eval_(run_dir: RunDir = DEFAULT_RUN_DIR) -> None:
-    """Compare posed avatar meshes and renders with ground truth (--gt scans/). Not available yet."""
-    _not_available("eval", "it needs a trained model")
+def eval_(
+    model: Annotated[Optional[Path], typer.Option(help="Model directory (default: RUN_DIR/model).")] = None,
+    gt: Annotated[
+        Optional[Path],
+        typer.Option("--gt", help="Folder of ground-truth scans <frame>.ply|.obj (default: scans/ of the capture the dataset was made from)."),
+    ] = None,
+    dataset: Annotated[
+        Optional[Path], typer.Option(help="Dataset with the test frames (default: the one the model was trained on).")
+    ] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Report directory to write (default: RUN_DIR/report).")] = None,
+    run_dir: RunDir = DEFAULT_RUN_DIR,
+    geometry: Annotated[bool, typer.Option("--geometry/--no-geometry", help="Compare posed meshes with the scans.")] = True,
+    images: Annotated[bool, typer.Option("--images/--no-images", help="Render test frames and compare PSNR/SSIM.")] = True,
+    mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh.", min=16)] = 256,
+    surface_samples: Annotated[int, typer.Option(help="Points sampled per surface (surface protocol).", min=1)] = 10_000,
+    iou_points: Annotated[int, typer.Option(help="Uniform points of the volumetric IoU (0 skips it).", min=0)] = 1_000_000,
+    iou_open_meshes: Annotated[
+        bool, typer.Option(help="Estimate the IoU by ray parity even when a mesh is not watertight (flagged approximate).")
+    ] = False,
+    image_scale: Annotated[
+        Optional[float], typer.Option(help="Render test frames at this fraction of the dataset's image size (default: 1 on a GPU, 0.25 on CPU).")
+    ] = None,
+    samples: Annotated[
+        Optional[int], typer.Option("--samples", help="Samples per ray of the test renders (default: 128 on a GPU, 32 on CPU).", min=1)
+    ] = None,
+    image_frames: Annotated[
+        Optional[int], typer.Option(help="Render this many test frames, evenly spaced; 0 = all (default: all on a GPU, 10 on CPU).", min=0)
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the surface samples and IoU points.")] = 0,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    quiet: Quiet = False,
+    json_out: JsonOut = False,
+) -> None:
+    """Compare the posed avatar with ground-truth scans (Chamfer, normal consistency, IoU) and test images (PSNR, SSIM)."""
+    from igavatar_cli.progress import RichProgress
+    from stages.eval import EvalOptions, run_eval
+
+    layout = RunLayout(run_dir)
+    options = EvalOptions(
+        model=model or layout.model, out=out or layout.report, gt=gt, dataset=dataset, geometry=geometry,
+        images=images, mesh_resolution=mesh_resolution, surface_samples=surface_samples, iou_points=iou_points,
+        iou_open_meshes=iou_open_meshes, image_scale=image_scale, samples_per_ray=samples, image_frames=image_frames,
+        seed=seed, device=device,
+    )
+    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+        summary = run_eval(options, progress=progress)
+    _print_summary(summary, json_out)
 
 
 @app.command()
@@ -213,9 +339,9 @@ def demo(
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
-    """Run every available stage on the built-in synthetic subject and print one summary.
+    """Run every stage on the built-in synthetic subject and print one summary.
 
-    Stages still missing in this version (export, animate, eval) are listed as not available.
+    synth -> preprocess -> train (cpu preset, or paper on a GPU) -> export -> animate (walk) -> eval.
     """
     from rich.table import Table
 
