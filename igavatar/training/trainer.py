@@ -212,7 +212,7 @@ class Trainer:
         logs = {name: float(value.detach()) for name, value in terms.items()}
         logs.update(
             loss=float(loss.detach()), psnr=psnr_from_mse(float(((out.rgb.detach() - target) ** 2).mean())),
-            beta=float(self.avatar.density.beta), samples=num_samples, step_seconds=elapsed,
+            beta=float(self.avatar.density.beta.detach()), samples=num_samples, step_seconds=elapsed,
             occupied=self.canonical_grid.occupied_fraction, lr=self.optimizer.param_groups[0]["lr"],
         )
         return logs
