@@ -45,7 +45,10 @@ from scipy.spatial import cKDTree
 
 from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
 from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, validate_against
+from igavatar.capture.capture_v1 import CAPTURE_FILE
 from igavatar.capture.images import resize_image, resize_mask, scale_intrinsics
+from igavatar.capture.importers import detect_layout, read_layout
+from igavatar.capture.xhumans import read_xhumans_scan
 from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight
 from igavatar.mesh.posing import canonical_mesh, pose_canonical_vertices
@@ -71,7 +74,7 @@ from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes
 from stages.train import resolve_device
 
-#: Scan formats read today (X-Humans .pkl is planned).
+#: Scan formats of a --gt folder; an imported capture (X-Humans) names its own scans (.pkl).
 SCAN_SUFFIXES = (".ply", ".obj")
 #: Distance (mm) shown fully red in the error-coloured mesh panels.
 ERROR_VMAX_MM = 20.0
@@ -155,7 +158,10 @@ def match_scans(gt_dir: Path, test_frames: list[str], all_frames: list[str]) -> 
         raise InputError(f"--gt {gt_dir}: no such directory of ground-truth scans (<frame>.ply or .obj)")
     scans: dict[str, Path] = {}
     ignored = []
-    for path in sorted(p for p in gt_dir.iterdir() if p.is_file() and not p.name.startswith(".")):
+    layout_scans = _layout_scans(gt_dir)
+    if layout_scans is not None:
+        scans = dict(layout_scans)
+    for path in sorted(p for p in gt_dir.iterdir() if layout_scans is None and p.is_file() and not p.name.startswith(".")):
         if path.suffix.lower() not in SCAN_SUFFIXES:
             ignored.append(path.name)
             continue
@@ -169,7 +175,8 @@ def match_scans(gt_dir: Path, test_frames: list[str], all_frames: list[str]) -> 
     if not matched:
         raise InputError(
             f"--gt {gt_dir}: no scan is named after a test frame (test frames: {', '.join(test_frames[:5])}"
-            f"{', ...' if len(test_frames) > 5 else ''}; found {len(scans)} .ply/.obj files); "
+            f"{', ...' if len(test_frames) > 5 else ''}; found {len(scans)} "
+            f"{'scans in the capture' if layout_scans is not None else '.ply/.obj files'}); "
             "pass the scans folder of this capture, or --no-geometry"
         )
     return ScanMatching(
@@ -181,8 +188,23 @@ def match_scans(gt_dir: Path, test_frames: list[str], all_frames: list[str]) -> 
     )
 
 
+def _layout_scans(gt_dir: Path) -> dict[str, Path] | None:
+    """frame -> scan of a capture in an imported layout that keeps its scans itself (X-Humans: one
+    meshes_pkl/ folder per take), or None for a plain folder of <frame>.ply|.obj files."""
+    if (gt_dir / CAPTURE_FILE).is_file():
+        return None
+    try:
+        layout = detect_layout(gt_dir)
+    except InputError:
+        return None
+    return read_layout(gt_dir, layout).scans
+
+
 def load_scan(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) float64 metres and faces (F, 3) int64 of a PLY/OBJ scan; InputError if unusable."""
+    """Vertices (V, 3) float64 metres and faces (F, 3) int64 of a PLY/OBJ scan or an X-Humans mesh
+    pickle; InputError if unusable."""
+    if Path(path).suffix.lower() == ".pkl":
+        return read_xhumans_scan(Path(path))
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for a corrupt file; all mean "unreadable"
@@ -226,13 +248,16 @@ def default_gt_dir(dataset_dir: Path, dataset_manifest: dict) -> Path:
     if not records:
         raise InputError(f"{dataset_dir}/manifest.json: no inputs recorded, so the capture is unknown; pass --gt")
     recorded = Path(records[0]["path"])
-    # A capture without a manifest is recorded file by file: its first input is capture.json.
-    capture = recorded if records[0].get("artifact") == "capture" or recorded.suffix != ".json" else recorded.parent
+    # A capture without a manifest is recorded file by file: its first input is capture.json, or
+    # for an imported layout a file in its root (whose scans match_scans finds by reading it).
+    capture = recorded if records[0].get("artifact") == "capture" else recorded.parent
     found = _existing(capture, dataset_dir)
     if found is None:
         raise InputError(
             f"{dataset_dir}/manifest.json: the capture {capture} it was made from does not exist; pass --gt SCANS_DIR"
         )
+    if dataset_manifest.get("data", {}).get("source_format", "capture-v1") != "capture-v1":
+        return found
     return found / "scans"
 
 

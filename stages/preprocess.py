@@ -4,7 +4,8 @@
 
 Dataset layout (schema `dataset`, version 1):
     images/<frame>.png   RGB, resized so the longer side <= max_size, undistorted
-    masks/<frame>.png    0/255
+    masks/<frame>.png    0/255: the capture's masks, or when it has none, GrabCut's around the posed
+                         body (manifest data "masks": "given" | "estimated (grabcut)")
     frames.npz           frame_names (N,), K (N,3,3), w2c (N,4,4), bone_transforms (N,J,4,4)
                          canonical -> posed world, pose_condition (N,P), posed_boxes (N,2,3),
                          posed_joints (N,J,3), is_train (N,), is_test (N,)
@@ -13,7 +14,9 @@ Dataset layout (schema `dataset`, version 1):
                          init_bones (I,) major bones root finding starts from,
                          skinning_grid (J,D,H,W), grid_box_min (3,), grid_box_max (3,),
                          canonical_box (2,3)
-    template.ply         canonical template mesh (the shape prior), when the body model has one
+    template.ply         canonical shape prior: the body model's template mesh, or for a bare
+                         skeleton a union of capsules around the bones (manifest data
+                         "shape_prior": "template" | "capsules")
     contact_sheet.png    frames with mask and projected skeleton, to check alignment by eye
 """
 
@@ -32,16 +35,21 @@ import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact, read_manifest, sha256_json
-from igavatar.capture.capture_v1 import CAPTURE_FILE, CaptureV1, load_image, load_mask, read_capture_v1
+from igavatar.body.capsules import capsule_prior
+from igavatar.body.skeleton import linear_blend_skinning
+from igavatar.capture.capture_v1 import CaptureV1, load_image, load_mask
+from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.contact_sheet import contact_sheet
 from igavatar.capture.images import project_points, resize_image, resize_mask, resize_plan, scale_intrinsics, undistort
-from igavatar.capture.subject import canonicalize, subject_from_capture
+from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
+from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
+from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.errors import ArtifactError, InputError
+from igavatar.skinning.bone_weights import build_bone_skinning_grid
 from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
 
-FORMATS = ("capture-v1",)
 #: Margin (metres) around the template for clothing, hair and loose garments.
 BOX_MARGIN_M = 0.12
 CONTACT_SHEET_FRAMES = 12
@@ -57,6 +65,7 @@ class PreprocessOptions:
     max_size: int = 512
     grid_resolution: tuple[int, int, int] = (64, 16, 64)
     anny_cache: Path | None = None
+    smpl_model: Path | None = None
     force: bool = False
 
     def config(self) -> dict:
@@ -79,31 +88,22 @@ def parse_grid_resolution(text: str) -> tuple[int, int, int]:
 
 
 def detect_format(capture: Path, requested: str) -> str:
-    """The input layout: `requested` unless 'auto', which looks for capture.json."""
-    if requested != "auto":
-        if requested not in FORMATS:
-            raise InputError(f"--format {requested!r}: unknown; expected auto or one of {', '.join(FORMATS)}")
-        return requested
-    if not capture.exists():
-        raise InputError(f"{capture}: no such capture directory (make one with `igavatar synth` or pass --capture)")
-    if (capture / MANIFEST_NAME).is_file():
+    """The input layout: `requested` unless 'auto' (see igavatar.capture.importers)."""
+    if capture.is_dir() and (capture / MANIFEST_NAME).is_file():
         # An artifact: it must be a capture, and intact (hashes), before anything reads it.
         read_artifact(capture, expected="capture")
-    if (capture / CAPTURE_FILE).is_file():
-        return "capture-v1"
-    raise InputError(
-        f"{capture}: no {CAPTURE_FILE}; cannot detect the capture layout (supported: {', '.join(FORMATS)})"
-    )
+    return detect_layout(capture, requested)
 
 
-def _input_records(capture: CaptureV1) -> list[InputRecord]:
+def _input_records(capture: CaptureV1, smpl_model: Path | None = None) -> list[InputRecord]:
     if (capture.root / MANIFEST_NAME).is_file():
-        return [InputRecord(capture.root, "capture")]
-    paths = [capture.root / CAPTURE_FILE, capture.root / "cameras.npz", capture.root / "poses.npz"]
-    paths += [capture.image_path(f) for f in capture.frames]
-    if capture.has_masks:
-        paths += [capture.mask_path(f) for f in capture.frames]
-    return [InputRecord(p) for p in paths]
+        records = [InputRecord(capture.root, "capture")]
+    else:
+        records = [InputRecord(p) for p in capture.input_files()]
+    if capture.body_model == "smpl":
+        # The user's SMPL file shapes the template and the skeleton: a different file is a new dataset.
+        records.append(InputRecord(smpl_model_for(capture, smpl_model)))
+    return records
 
 
 def _up_to_date(out: Path, config: dict, inputs: list[dict]) -> bool:
@@ -125,6 +125,16 @@ def _squeeze_axis(vertices: torch.Tensor) -> int:
     return int((vertices.amax(0) - vertices.amin(0)).argmin())
 
 
+def _segmentation_body(subject: PosedSubject, canonical: CanonicalSubject, index: int) -> PosedBody:
+    """Frame `index`'s posed body for GrabCut seeding: the skinned template, else the skeleton."""
+    if canonical.template_vertices is not None:
+        posed = linear_blend_skinning(
+            canonical.template_vertices, subject.template_weights, canonical.bone_transforms[index]
+        )
+        return PosedBody(vertices=posed.double().numpy(), faces=subject.template_faces.numpy())
+    return PosedBody(joints=canonical.posed_joints[index].double().numpy(), parents=subject.skeleton.parents)
+
+
 def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Read the capture, pose its body model, resize images, build the skinning grid, write the dataset.
 
@@ -134,39 +144,44 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     started = time.perf_counter()
     timings: dict[str, float] = {}
     input_format = detect_format(Path(options.capture), options.input_format)
-    capture = read_capture_v1(Path(options.capture))
-    if not capture.has_masks:
-        raise InputError(
-            f"{capture.root / 'masks'}: no masks; this version needs masks/<frame>.png for every frame "
-            "(0 background, 255 subject); automatic segmentation is planned"
-        )
+    capture = read_layout(Path(options.capture), input_format)
+    # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
+    masks_source = "given" if capture.has_masks else "estimated (grabcut)"
     config = options.config() | {"input_format": input_format}
-    inputs = _input_records(capture)
+    if not capture.has_masks:
+        config["segmentation"] = {"method": "grabcut", "band_m": CLOTHING_BAND_M, "iterations": GRABCUT_ITERATIONS}
+    inputs = _input_records(capture, options.smpl_model)
     input_json = [record.to_json() for record in inputs]
     out = Path(options.out)
     if not options.force and _up_to_date(out, config, input_json):
         return {"dataset": str(out), "skipped": "inputs and options unchanged (use --force to redo)"}
 
     tick = time.perf_counter()
-    subject = subject_from_capture(capture, options.anny_cache, progress.status)
+    subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
     canonical = canonicalize(subject)
     timings["body_model_s"] = time.perf_counter() - tick
 
     tick = time.perf_counter()
+    posed_boxes = canonical.posed_template_boxes.clone()
     if canonical.template_vertices is not None:
         template = canonical.template_vertices
         box_min, box_max = canonical_grid_box(template, squeeze_axis=_squeeze_axis(template))
         skinning_grid = build_skinning_grid(template, subject.template_weights, box_min, box_max, options.grid_resolution)
-        body_points = template
-    else:  # reached by importers without templates (planned); keep the layout honest meanwhile
-        raise InputError(f"{capture.root}: body model '{subject.body_model}' has no template mesh to build skinning weights from")
+        body_points, prior_faces, shape_prior = template, subject.template_faces, "template"
+    else:  # a bare skeleton: capsules around the bones are the shape, the bones give the weights
+        prior = capsule_prior(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms)
+        box_min, box_max = canonical_grid_box(prior.vertices, squeeze_axis=_squeeze_axis(prior.vertices))
+        skinning_grid = build_bone_skinning_grid(
+            canonical.canonical_joints, subject.skeleton, box_min, box_max, options.grid_resolution
+        )
+        body_points, prior_faces, shape_prior = prior.vertices, prior.faces, "capsules"
+        posed_boxes = prior.posed_boxes.clone()  # joints alone miss the crown, hands and feet
     canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)
     canonical_hi = torch.minimum(body_points.amax(0) + BOX_MARGIN_M, box_max)
     timings["skinning_grid_s"] = time.perf_counter() - tick
 
     scale_xy, size_hw = resize_plan(capture.height, capture.width, options.max_size)
     K = scale_intrinsics(capture.K, scale_xy)
-    posed_boxes = canonical.posed_template_boxes.clone()
     posed_boxes[:, 0] -= BOX_MARGIN_M
     posed_boxes[:, 1] += BOX_MARGIN_M
     frame_index = {name: i for i, name in enumerate(capture.frames)}
@@ -177,20 +192,32 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         tick = time.perf_counter()
-        with progress.task("resizing frames", total=len(capture.frames)) as advance:
+        task = "resizing frames" if capture.has_masks else "resizing frames, segmenting the subject"
+        with progress.task(task, total=len(capture.frames)) as advance:
             for i, frame in enumerate(capture.frames):
                 rgb = load_image(capture.image_path(frame), (capture.height, capture.width))
-                mask = load_mask(capture.mask_path(frame), (capture.height, capture.width))
-                if capture.dist is not None:
-                    rgb, mask = undistort(rgb, mask, capture.K[i], capture.dist)
+                if capture.has_masks:
+                    mask = load_mask(capture.mask_path(frame), (capture.height, capture.width))
+                else:
+                    mask = np.ones((capture.height, capture.width), bool)  # replaced after resizing
+                dist = capture.frame_dist(i)
+                if dist is not None:
+                    rgb, mask = undistort(rgb, mask, capture.K[i], dist)
                 rgb, mask = resize_image(rgb, size_hw), resize_mask(mask, size_hw)
+                if not capture.has_masks:
+                    mask = estimate_mask(rgb, K[i], capture.w2c[i], _segmentation_body(subject, canonical, i))
+                    if not mask.any():
+                        raise InputError(
+                            f"{capture.image_path(frame)}: no subject found where the posed body projects; check "
+                            "that the poses and cameras put the body in view, or give masks"
+                        )
                 if not mask.any():
                     raise InputError(f"{capture.mask_path(frame)}: the mask is empty (no subject pixels)")
                 cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
                 if i in sheet_frames:
                     joints_uv = project_points(K[i], capture.w2c[i], canonical.posed_joints[i].double().numpy())
-                    sheet_items.append((rgb, mask, joints_uv, frame))
+                    sheet_items.append((rgb, mask, joints_uv, frame if capture.has_masks else f"{frame} (est.)"))
                 advance(1)
         timings["frames_s"] = time.perf_counter() - tick
 
@@ -221,10 +248,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             grid_box_min=box_min.numpy().astype(np.float32), grid_box_max=box_max.numpy().astype(np.float32),
             canonical_box=torch.stack((canonical_lo, canonical_hi)).numpy().astype(np.float32),
         )
-        if canonical.template_vertices is not None:
-            trimesh.Trimesh(
-                canonical.template_vertices.numpy(), subject.template_faces.numpy(), process=False
-            ).export(tmp / "template.ply")
+        trimesh.Trimesh(body_points.numpy(), prior_faces.numpy(), process=False).export(tmp / "template.ply")
         data = {
             "source_format": input_format,
             "body_model": subject.body_model,
@@ -239,8 +263,10 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                 "box_min": box_min.tolist(), "box_max": box_max.tolist(),
             },
             "canonical_box": [canonical_lo.tolist(), canonical_hi.tolist()],
-            "has_template": canonical.template_vertices is not None,
+            "has_template": True,
+            "shape_prior": shape_prior,
             "has_scans": bool(capture.scans),
+            "masks": masks_source,
             "subject": json.loads(json.dumps(subject.description)),
         }
         timings["total_s"] = time.perf_counter() - started

@@ -21,19 +21,10 @@ from igavatar.body.motions import (
     walk,
 )
 from igavatar.body.rotations import axis_angle_to_matrix, rotation_angle
-from igavatar.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton, forward_kinematics
+from igavatar.body.skeleton import NOMINAL_SMPL_REST_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton, forward_kinematics
 from igavatar.errors import InputError
 
-# A plausible neutral SMPL T-pose (rounded, metres; +Y up, face towards +Z, left at +X). It is
-# typed here, not taken from the licensed SMPL model.
-SMPL_TPOSE_JOINTS = np.array([
-    [0.000, -0.240, 0.030], [0.060, -0.330, 0.015], [-0.060, -0.330, 0.015], [0.000, -0.115, -0.005],
-    [0.105, -0.720, 0.015], [-0.105, -0.720, 0.015], [0.005, 0.020, 0.025], [0.090, -1.150, -0.020],
-    [-0.090, -1.150, -0.020], [0.005, 0.075, 0.030], [0.120, -1.210, 0.100], [-0.120, -1.210, 0.100],
-    [0.000, 0.290, -0.015], [0.080, 0.190, -0.015], [-0.080, 0.190, -0.015], [0.005, 0.360, 0.040],
-    [0.175, 0.230, -0.015], [-0.175, 0.230, -0.015], [0.430, 0.215, -0.035], [-0.430, 0.215, -0.035],
-    [0.685, 0.220, -0.040], [-0.685, 0.220, -0.040], [0.765, 0.210, -0.050], [-0.765, 0.210, -0.050],
-])
+SMPL_TPOSE_JOINTS = NOMINAL_SMPL_REST_JOINTS
 SMPL_SKELETON = Skeleton(np.array(SMPL_PARENTS), SMPL_TPOSE_JOINTS, SMPL_JOINT_NAMES)
 N_FRAMES = 24
 

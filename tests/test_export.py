@@ -154,15 +154,18 @@ def test_smpl_formats_are_read_and_refused_for_an_anny_skeleton(tmp_path):
     np.testing.assert_array_equal(sequences["amass"].rotvecs[:, :22], sequences["aist"].rotvecs[:, :22])
     assert (sequences["amass"].rotvecs[:, 22:] == 0).all() and sequences["amass"].fps == 120.0
 
-    # An avatar with SMPL's tree takes them as they are; Anny's 104 bones need a retarget.
+    # An avatar with SMPL's tree takes them as they are; Anny avatars get a retarget
+    # (tests/test_retarget.py), which needs Anny's joint names; other skeletons are refused.
     smpl = Skeleton(np.array(SMPL_PARENTS), np.random.default_rng(1).normal(size=(24, 3)), SMPL_JOINT_NAMES)
     rotations, translation = sequence_local_pose(sequences["aist"], smpl, "smpl")
     np.testing.assert_allclose(rotations.numpy(), axis_angle_to_matrix(torch.tensor(poses72).reshape(3, 24, 3)).numpy(), atol=1e-6)
     np.testing.assert_allclose(translation.numpy(), trans, atol=1e-6)
     parents = np.array([-1] + [max(0, j - 1) for j in range(1, 104)])
     anny_like = Skeleton(parents, np.zeros((104, 3)), tuple(f"bone{j}" for j in range(104)))
-    with pytest.raises(NotAvailableError, match=r"SMPL pose sequence .* skeleton is Anny \(104 joints\).*retargeting"):
+    with pytest.raises(InputError, match=r"cannot retarget .* to Anny \(104 joints\): .*target skeleton lacks 20 of the anny joints"):
         sequence_local_pose(sequences["amass"], anny_like, "anny", phenotype={})
+    with pytest.raises(NotAvailableError, match=r"SMPL pose sequence .* skeleton is a bare skeleton \(104 joints\).*only to anny"):
+        sequence_local_pose(sequences["amass"], anny_like, "skeleton")
 
 
 def test_skeleton_sequences_need_the_same_tree(tmp_path):
@@ -364,14 +367,16 @@ def test_cli_export_json_and_skip_when_unchanged(small_run, tiny_model, cli_runn
     read_artifact(small_run / "dataset", expected="dataset")
 
 
-@pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "smpl", "frame-range", "frame-without-pose", "no-pose-file"])
+@pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "other-skeleton", "frame-range", "frame-without-pose", "no-pose-file"])
 def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_runner, tmp_path, case):
     np.savez(tmp_path / "bad.npz", pose_parameters=np.zeros((2, 104, 4, 3)))
-    np.savez(tmp_path / "smpl.npz", poses=np.zeros((2, 72)), trans=np.zeros((2, 3)))
+    # A bare 3-joint skeleton: no retarget exists onto Anny (SMPL sequences are retargeted).
+    np.savez(tmp_path / "chain.npz", parents=np.array([-1, 0, 1]), rest_joints=np.eye(3), rotvecs=np.zeros((2, 3, 3)),
+             transl=np.zeros((2, 3)))
     model, extra, code, message = {
         "dataset-as-model": (small_run / "dataset", [], 3, "needs a model artifact"),
         "bad-shape": (tiny_model, ["--pose", str(tmp_path / "bad.npz")], 2, "key 'pose_parameters' has shape (2, 104, 4, 3)"),
-        "smpl": (tiny_model, ["--pose", str(tmp_path / "smpl.npz")], 4, "Anny (104 joints)"),
+        "other-skeleton": (tiny_model, ["--pose", str(tmp_path / "chain.npz")], 2, "Anny (104 joints)"),
         "frame-range": (tiny_model, ["--pose", str(small_run / "capture"), "--frame", "99"], 2, "--frame 99"),
         "frame-without-pose": (tiny_model, ["--frame", "1"], 2, "--frame needs --pose"),
         "no-pose-file": (tiny_model, ["--pose", str(tmp_path / "missing.npz")], 2, "no such file"),

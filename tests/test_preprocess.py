@@ -6,6 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -109,13 +110,42 @@ def test_validate_reports_an_edited_dataset_file(small_run, cli_runner, tmp_path
     assert result.exit_code == 3 and "frames.npz: sha256 mismatch" in result.output
 
 
-def test_capture_without_masks_is_a_clear_error(small_run, cli_runner, tmp_path):
+def test_capture_without_masks_gets_grabcut_masks_close_to_the_true_ones(small_run, cli_runner, tmp_path):
+    """Masks dropped: preprocess cuts them with GrabCut seeded by the posed Anny template.
+
+    Measured on this subject at 64 px: IoU 0.91-0.95 per frame with the true masks (0.95-0.97 at
+    96 px), where the template's own silhouette reaches 0.83-0.88; the bounds below leave margin.
+    """
+    from igavatar.capture.contact_sheet import contact_sheet
+
     capture = tmp_path / "capture"
     shutil.copytree(small_run / "capture", capture)
     (capture / "manifest.json").unlink()  # a hand-made capture: no manifest
     shutil.rmtree(capture / "masks")
-    result = cli_runner.invoke(app, ["preprocess", "--capture", str(capture), "--out", str(tmp_path / "d")])
-    assert result.exit_code == 2 and "no masks" in result.output
+    out = tmp_path / "d"
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(capture), "--out", str(out), "--max-size", "64"])
+    assert result.exit_code == 0, result.output
+    manifest = read_artifact(out, expected="dataset")
+    assert manifest["data"]["masks"] == "estimated (grabcut)" and manifest["config"]["segmentation"]["method"] == "grabcut"
+    assert read_artifact(small_run / "dataset", expected="dataset")["data"]["masks"] == "given"
+    frames = manifest["data"]["frames"]
+    ious = []
+    for frame in frames:
+        truth = cv2.imread(str(small_run / "dataset" / "masks" / f"{frame}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        estimate = cv2.imread(str(out / "masks" / f"{frame}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        ious.append((truth & estimate).sum() / (truth | estimate).sum())
+    assert min(ious) >= 0.88 and np.mean(ious) >= 0.9, ious
+    # The contact sheet shows the estimated masks: it is the sheet of the dataset's own masks.
+    stored = np.load(out / "frames.npz")
+    parents = np.load(out / "subject.npz")["parents"]
+    items = []
+    for i, frame in enumerate(frames):
+        rgb = cv2.cvtColor(cv2.imread(str(out / "images" / f"{frame}.png")), cv2.COLOR_BGR2RGB)
+        mask = cv2.imread(str(out / "masks" / f"{frame}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        uv = project_points(stored["K"][i].astype(np.float64), stored["w2c"][i].astype(np.float64), stored["posed_joints"][i].astype(np.float64))
+        items.append((rgb, mask, uv, f"{frame} (est.)"))
+    written = cv2.cvtColor(cv2.imread(str(out / "contact_sheet.png")), cv2.COLOR_BGR2RGB)
+    assert np.mean(np.any(written != contact_sheet(items, parents), axis=-1)) < 1e-3
 
 
 def test_unknown_body_model_via_cli(small_run, cli_runner, tmp_path):

@@ -4,7 +4,9 @@
     rgb = load_image(capture.image_path(capture.frames[0]))      # (H, W, 3) uint8 RGB
 
 Everything a capture promises is checked once here, with errors that name the file, key and shape,
-so the stages after it can trust what they get.
+so the stages after it can trust what they get. `CaptureV1` is also what the importers of other
+layouts (igavatar.capture.importers) return: the native format in memory, with each frame's image
+and mask file wherever that layout keeps it.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import cv2
 import numpy as np
 
 from igavatar.artifacts.manifest import first_schema_error
+from igavatar.capture.arrays import read_npz
 from igavatar.errors import InputError
 
 CAPTURE_FILE = "capture.json"
@@ -42,10 +45,15 @@ class CaptureV1:
         K: (N, 3, 3) intrinsics in pixels.
         w2c: (N, 4, 4) world-to-camera extrinsics.
         height, width: image size in pixels.
-        dist: (5,) OpenCV distortion coefficients, or None.
+        dist: (5,) or (N, 5) OpenCV distortion coefficients, or None.
         poses: arrays of poses.npz, shapes per POSE_LAYOUTS.
-        has_masks: whether masks/ holds one mask per frame.
+        has_masks: whether there is one mask per frame.
         scans: frame -> path of the ground-truth posed mesh, for the frames that have one.
+        image_files: frame -> image file (empty: images/<frame><image_ext>).
+        mask_files: frame -> mask file (.png 0/255, .npy {0,1}, .tif/.tiff depth: > 0 is the
+            subject); empty: masks/<frame>.png.
+        source_files: the files besides images and masks the capture was read from (hashed into
+            the dataset manifest); empty: capture.json, cameras.npz, poses.npz.
     """
 
     root: Path
@@ -59,6 +67,9 @@ class CaptureV1:
     poses: dict[str, np.ndarray]
     has_masks: bool
     scans: dict[str, Path] = field(default_factory=dict)
+    image_files: dict[str, Path] = field(default_factory=dict)
+    mask_files: dict[str, Path] = field(default_factory=dict)
+    source_files: tuple[Path, ...] = ()
 
     @property
     def body_model(self) -> str:
@@ -68,23 +79,40 @@ class CaptureV1:
     def splits(self) -> dict[str, list[str]]:
         return self.meta["splits"]
 
+    @property
+    def input_format(self) -> str:
+        """The layout it was read from: 'capture-v1' or an importer's name."""
+        return self.meta.get("source_format", "capture-v1")
+
     def image_path(self, frame: str) -> Path:
+        if frame in self.image_files:
+            return self.image_files[frame]
         return self.root / "images" / f"{frame}{self.meta.get('image_ext', '.png')}"
 
     def mask_path(self, frame: str) -> Path:
+        if frame in self.mask_files:
+            return self.mask_files[frame]
         return self.root / "masks" / f"{frame}.png"
+
+    def frame_dist(self, index: int) -> np.ndarray | None:
+        """(5,) distortion coefficients of frame `index`, or None when the images are undistorted."""
+        if self.dist is None:
+            return None
+        return self.dist if self.dist.ndim == 1 else self.dist[index]
+
+    def input_files(self) -> list[Path]:
+        """Every file the capture was read from: sources, then images, then masks."""
+        sources = list(self.source_files) or [self.root / CAPTURE_FILE, self.root / "cameras.npz", self.root / "poses.npz"]
+        paths = sources + [self.image_path(f) for f in self.frames]
+        if self.has_masks:
+            paths += [self.mask_path(f) for f in self.frames]
+        return paths
 
 
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise InputError(f"{path}: missing; a capture v1 needs it (see DATA.md section 1d)")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
-    except ValueError as exc:
-        raise InputError(f"{path}: holds pickled objects, which igavatar never loads; save plain arrays") from exc
-    except Exception as exc:  # zipfile.BadZipFile, OSError, ...
-        raise InputError(f"{path}: not a readable .npz file ({exc})") from exc
+    return read_npz(path)
 
 
 def _check_shape(path: Path, key: str, array: np.ndarray, expected: tuple, sizes: dict[str, int]) -> None:
@@ -236,7 +264,46 @@ def load_image(path: Path, expected_hw: tuple[int, int] | None = None) -> np.nda
 
 
 def load_mask(path: Path, expected_hw: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a mask PNG (0 background, >0 foreground; 1 or 3 channels) as (H, W) bool."""
+    """Read a mask as (H, W) bool.
+
+    By suffix: .png/.jpg 0 background, >0 foreground (1 or 3 channels); .npy an (H, W) array,
+    nonzero foreground (PeopleSnapshot); .tif/.tiff a depth render, subject where depth > 0,
+    finite and nearer than a far-plane background (X-Humans).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            mask = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: not a readable .npy mask ({exc})") from exc
+        if mask.ndim == 3 and mask.shape[-1] in (1, 3):
+            mask = mask.max(axis=-1)
+        if mask.ndim != 2:
+            raise InputError(f"{path}: mask array has shape {mask.shape}, expected (H, W)")
+        if expected_hw is not None and mask.shape != tuple(expected_hw):
+            raise InputError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, expected {expected_hw[1]}x{expected_hw[0]}")
+        return mask > 0
+    if suffix in (".tif", ".tiff"):
+        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+        if depth is None:
+            raise InputError(f"{path}: not a readable depth image (TIFF) to derive the mask from")
+        if depth.ndim == 3:
+            depth = depth[..., 0]
+        if expected_hw is not None and depth.shape[:2] != tuple(expected_hw):
+            raise InputError(f"{path}: depth is {depth.shape[1]}x{depth.shape[0]}, expected {expected_hw[1]}x{expected_hw[0]}")
+        depth = depth.astype(np.float64)
+        subject = np.isfinite(depth) & (depth > 0)
+        if subject.any():
+            # Renderers clear the depth buffer to the far plane (aitviewer, which rendered X-Humans,
+            # writes eye-space z with the background at the far distance): pixels at the maximum,
+            # when it stands well apart from every other depth, are background, not subject.
+            far = depth[subject].max()
+            at_far = subject & (depth >= far * (1.0 - 1e-6))
+            nearer = depth[subject & ~at_far]
+            if nearer.size and far > 1.5 * nearer.max():
+                subject &= ~at_far
+        return subject
     mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if mask is None:
         raise InputError(f"{path}: not a readable mask image (PNG, 0 background / 255 foreground)")

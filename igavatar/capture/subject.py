@@ -20,7 +20,6 @@ from igavatar.body.motions import ROOT_FINDING_PARTS, semantic_joint_map
 from igavatar.body.rotations import invert_rigid, matrix_to_axis_angle
 from igavatar.body.skeleton import Skeleton, bone_transforms, forward_kinematics, linear_blend_skinning
 from igavatar.capture.capture_v1 import CaptureV1
-from igavatar.errors import NotAvailableError
 
 
 @dataclass(frozen=True)
@@ -103,20 +102,29 @@ def major_bones(skeleton: Skeleton, skeleton_kind: str) -> tuple[int, ...]:
 
 
 def subject_from_capture(
-    capture: CaptureV1, anny_cache: Path | None = None, on_status: Callable[[str], None] | None = None
+    capture: CaptureV1,
+    anny_cache: Path | None = None,
+    on_status: Callable[[str], None] | None = None,
+    smpl_model: Path | None = None,
 ) -> PosedSubject:
     """Evaluate the capture's body model for every frame.
 
+    Args:
+        anny_cache: Anny's cache directory (None: its default).
+        smpl_model: the user's SMPL model file (.pkl/.npz), needed by captures with SMPL betas.
+
     Raises:
-        NotAvailableError: for body models this version cannot pose yet.
         BodyModelError / InputError: from the body model's adapter.
     """
     if capture.body_model == "anny":
         return _anny_subject(capture, anny_cache, on_status)
-    raise NotAvailableError(
-        f"{capture.root / 'capture.json'}: body model '{capture.body_model}' is not supported by "
-        "preprocess yet (only 'anny' is); SMPL files and bare skeletons are planned"
-    )
+    if capture.body_model == "smpl":
+        from igavatar.capture.subject_smpl import smpl_subject
+
+        return smpl_subject(capture, smpl_model)
+    from igavatar.capture.subject_skeleton import skeleton_subject
+
+    return skeleton_subject(capture)
 
 
 @dataclass(frozen=True)

@@ -17,10 +17,10 @@ A capture v1 directory stands for its poses.npz, with the frames named as in cap
 
 Converting to an avatar's skeleton (`sequence_local_pose`) never guesses: an Anny sequence drives
 an Anny avatar (its pose parameters are read with the avatar's own phenotype, through
-igavatar.body.anny_body), an SMPL sequence drives a skeleton with SMPL's 24-joint tree, and a
+igavatar.body.anny_body), an SMPL sequence drives a skeleton with SMPL's 24-joint tree directly and
+an Anny avatar through igavatar.body.retarget (joint-name mapping with rest-pose correction), and a
 bare-skeleton sequence drives a skeleton with the same parents (and names, when the file has
-them). Anything else is an error naming both skeletons: retargeting between different skeletons
-(e.g. SMPL motions onto Anny's 104 bones) is not available yet.
+them). Anything else is an error naming both skeletons.
 
 `local_pose_from_bone_transforms` goes the other way round for data that stores only bone
 transforms (a dataset artifact's frames.npz): it recovers local rotations and root translation.
@@ -325,6 +325,9 @@ def sequence_local_pose(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Local rotations and root translation of a sequence for an avatar's skeleton.
 
+    SMPL sequences on an Anny avatar are retargeted (igavatar.body.retarget): the avatar's world is
+    then taken to be Anny's (+Z up), as for every Anny capture igavatar makes.
+
     Args:
         sequence: from read_pose_sequence (select the frames first: Anny conversion is per frame).
         skeleton: the avatar's skeleton (rest joints, parents, names).
@@ -370,9 +373,19 @@ def sequence_local_pose(
 
     if sequence.skeleton_kind == "smpl":
         if skeleton.num_joints != SMPL_JOINTS or tuple(skeleton.parents.tolist()) != SMPL_PARENTS:
+            from igavatar.body.retarget import RETARGETS, retarget_sequence
+
+            if ("smpl", body_model) in RETARGETS:
+                try:
+                    rotations, translation = retarget_sequence(sequence.rotvecs, sequence.transl, skeleton, "smpl", body_model)
+                except InputError as exc:
+                    raise InputError(f"{sequence.source}: cannot retarget {sequence.describe()} to {avatar}: {exc}") from exc
+                return rotations.to(torch.float32), translation.to(torch.float32)
+            targets = ", ".join(t for s, t in RETARGETS if s == "smpl")
             raise NotAvailableError(
                 f"{sequence.source}: {sequence.describe()} cannot drive this avatar: its skeleton is {avatar}, "
-                f"and SMPL motions need retargeting to it, which is not available yet in igavatar {__version__}"
+                f"which is not SMPL's 24-joint tree, and igavatar {__version__} retargets SMPL motions only to "
+                f"{targets} avatars"
             )
     else:  # skeleton
         same_tree = sequence.num_joints == skeleton.num_joints and np.array_equal(sequence.parents, skeleton.parents)
@@ -381,7 +394,8 @@ def sequence_local_pose(
             raise InputError(
                 f"{sequence.source}: {sequence.describe()} is for another skeleton than this avatar's, which is "
                 f"{avatar}{'' if same_tree else ' with other parents'}"
-                f"{'' if same_names else ' and other joint names'}; retargeting is not available yet"
+                f"{'' if same_names else ' and other joint names'}; bare-skeleton sequences drive only avatars of the same "
+                "skeleton (only SMPL motions are retargeted, onto Anny)"
             )
     rotations = axis_angle_to_matrix(torch.as_tensor(sequence.rotvecs, dtype=torch.float64))
     return rotations.to(torch.float32), torch.as_tensor(sequence.transl, dtype=torch.float32)
