@@ -88,6 +88,9 @@ def synth(
     resolution: Annotated[int, typer.Option(help="Image height and width in pixels.", min=32, max=4096)] = 512,
     train_frames: Annotated[int, typer.Option(help="Frames of the 360-degree turn in A-pose (training split).", min=1)] = 100,
     test_frames: Annotated[int, typer.Option(help="Frames of novel poses (walk, arm raise, squat; test split).", min=0)] = 30,
+    holdout_frames: Annotated[
+        int, typer.Option(help="Frames of a second A-pose turn in the test split (in-distribution poses, new views).", min=0)
+    ] = 0,
     phenotype: Annotated[
         Optional[list[str]], typer.Option(help="Anny phenotype value, repeatable: --phenotype gender=0.2 --phenotype weight=0.7.")
     ] = None,
@@ -105,7 +108,7 @@ def synth(
 
     options = SynthOptions(
         out=out or RunLayout(run_dir).capture, resolution=resolution, train_frames=train_frames,
-        test_frames=test_frames, phenotype=tuple(phenotype or ()), garment=garment, texture=texture,
+        test_frames=test_frames, holdout_frames=holdout_frames, phenotype=tuple(phenotype or ()), garment=garment, texture=texture,
         seed=seed, anny_cache=anny_cache, force=force,
     )
     with RichProgress(err_console, quiet=quiet or json_out) as progress:
@@ -119,12 +122,20 @@ def preprocess(
     capture: Annotated[Optional[Path], typer.Option(help="Capture directory [default: RUN_DIR/capture].")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Dataset directory to write [default: RUN_DIR/dataset].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
-    input_format: Annotated[str, typer.Option("--format", help="Input layout: auto or capture-v1.")] = "auto",
+    input_format: Annotated[str, typer.Option("--format", help="Input layout: auto (detect), capture-v1, peoplesnapshot, xhumans or humannerf.")] = "auto",
     max_size: Annotated[int, typer.Option(help="Resize images so the longer side is at most this many pixels.", min=16)] = 512,
     grid_resolution: Annotated[
         str, typer.Option(help="Skinning-weight grid D,H,W (z,y,x) in canonical space.")
     ] = "64,16,64",
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory [default: ~/.cache/anny].")] = None,
+    smpl_model: Annotated[
+        Optional[Path],
+        typer.Option(
+            envvar="IGAVATAR_SMPL_MODEL",
+            help="Your licensed SMPL model file (SMPL_NEUTRAL/MALE/FEMALE .pkl or .npz from smpl.is.tue.mpg.de), "
+            "needed by captures with SMPL poses; igavatar never ships or downloads it.",
+        ),
+    ] = None,
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
@@ -136,7 +147,8 @@ def preprocess(
     layout = RunLayout(run_dir)
     options = PreprocessOptions(
         capture=capture or layout.capture, out=out or layout.dataset, input_format=input_format,
-        max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution), anny_cache=anny_cache, force=force,
+        max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution), anny_cache=anny_cache,
+        smpl_model=smpl_model, force=force,
     )
     with RichProgress(err_console, quiet=quiet or json_out) as progress:
         summary = run_preprocess(options, progress=progress)
@@ -157,6 +169,9 @@ def train(
         Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe.")
     ] = None,
     smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works).")] = None,
+    sdf_encoding: Annotated[
+        Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
+    ] = None,
     seed: Annotated[int, typer.Option(help="Random seed (runs are deterministic on CPU).")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint of an interrupted run.")] = False,
@@ -170,8 +185,8 @@ def train(
     layout = RunLayout(run_dir)
     options = TrainOptions(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
-        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, seed=seed, device=device,
-        resume=resume,
+        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, sdf_encoding=sdf_encoding,
+        seed=seed, device=device, resume=resume,
     )
     with RichProgress(err_console, quiet=quiet or json_out) as progress:
         summary = run_train(options, progress=progress)

@@ -58,6 +58,9 @@ class SynthOptions:
         resolution: image height and width in pixels.
         train_frames: frames of the 360-degree turn (training split).
         test_frames: frames of novel poses, split over walk, arm raise and squat (test split).
+        holdout_frames: frames of a second A-pose turn (other small motions, views half-way
+            between the training views) added to the test split as `test_holdout_*`: in-distribution
+            poses for evaluation (0 = none, the default).
         phenotype: Anny phenotype overrides as "label=value" strings, values in [0, 1].
         garment: outfit, one of igavatar.synth.garments.GARMENTS.
         texture: texture style, one of igavatar.synth.texture.TEXTURES.
@@ -70,6 +73,7 @@ class SynthOptions:
     resolution: int = 512
     train_frames: int = 100
     test_frames: int = 30
+    holdout_frames: int = 0
     phenotype: tuple[str, ...] = ()
     garment: str = "shirt-trousers"
     texture: str = "stripes"
@@ -109,6 +113,8 @@ def _check_options(options: SynthOptions) -> None:
         raise InputError(f"--train-frames {options.train_frames}: expected at least 1")
     if options.test_frames < 0:
         raise InputError(f"--test-frames {options.test_frames}: expected 0 or more")
+    if options.holdout_frames < 0:
+        raise InputError(f"--holdout-frames {options.holdout_frames}: expected 0 or more")
     if options.garment not in GARMENTS:
         raise InputError(f"--garment {options.garment!r}: choose one of {', '.join(GARMENTS)}")
     if options.texture not in TEXTURES:
@@ -121,6 +127,7 @@ def resolved_config(options: SynthOptions) -> dict:
         "resolution": int(options.resolution),
         "train_frames": int(options.train_frames),
         "test_frames": int(options.test_frames),
+        **({"holdout_frames": int(options.holdout_frames)} if options.holdout_frames else {}),
         "phenotype": parse_phenotype(options.phenotype),
         "garment": options.garment,
         "texture": options.texture,
@@ -142,8 +149,10 @@ class SequencePart:
     yaw: float
 
 
-def make_sequence(body: AnnyBody, train_frames: int, test_frames: int, seed: int) -> list[SequencePart]:
-    """The training turn plus the test motions (test frames split as evenly as possible)."""
+def make_sequence(
+    body: AnnyBody, train_frames: int, test_frames: int, seed: int, holdout_frames: int = 0
+) -> list[SequencePart]:
+    """The training turn, the hold-out turn (if any), then the test motions (split as evenly as possible)."""
     skeleton = body.skeleton
     parts = [
         SequencePart(
@@ -154,6 +163,14 @@ def make_sequence(body: AnnyBody, train_frames: int, test_frames: int, seed: int
             yaw=0.0,
         )
     ]
+    if holdout_frames:
+        # Another seed gives other small motions; the yaw puts its views half-way between the
+        # training turn's (which steps 2 pi / train_frames per frame).
+        parts.append(SequencePart(
+            motion=turntable("anny", holdout_frames, seed + 100, small_motion=True, fps=TRAIN_FPS, skeleton=skeleton),
+            split="test", frames=tuple(f"test_holdout_{i:04d}" for i in range(holdout_frames)),
+            seed=seed + 100, yaw=float(np.pi / train_frames),
+        ))
     rng = np.random.default_rng([seed, 1])
     counts = [test_frames // len(TEST_MOTIONS) + (k < test_frames % len(TEST_MOTIONS)) for k in range(len(TEST_MOTIONS))]
     for k, ((name, seconds, (yaw_low, yaw_high)), count) in enumerate(zip(TEST_MOTIONS, counts)):
@@ -285,7 +302,7 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     texture = build_texture(body, options.texture, options.seed)
     timings["subject_s"] = time.perf_counter() - started
 
-    parts = make_sequence(body, options.train_frames, options.test_frames, options.seed)
+    parts = make_sequence(body, options.train_frames, options.test_frames, options.seed, options.holdout_frames)
     frames = [name for part in parts for name in part.frames]
     local_rotations, root_translation = sequence_poses(body, parts)
     x_posed = pose_subject(subject, body, local_rotations, root_translation)

@@ -59,6 +59,7 @@ class TrainOptions:
     rays_per_step: int | None = None
     samples_per_ray: int | None = None
     regularizer: str | None = None
+    sdf_encoding: str | None = None
     smooth_weight: float | None = None
     seed: int = 0
     device: str = "auto"
@@ -81,6 +82,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
     config = with_overrides(
         preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
         samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
+        sdf_encoding=options.sdf_encoding,
     )
     if options.smooth_weight is not None:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, smooth=options.smooth_weight))

@@ -240,3 +240,40 @@ def test_hybrid_encoding_gradient_matches_autograd_and_levels_open_coarse_to_fin
     plain = SDFField(dataclasses.replace(config, pe_frequencies=0), torch.full((3,), -1.0), torch.ones(3))
     # Only the +-1e-4 hash features differ (other random draws); zero PE columns change nothing.
     torch.testing.assert_close(hybrid(points)[0], plain(points)[0], rtol=0, atol=1e-3)
+
+
+def test_beta_ceiling_caps_beta_and_old_state_dicts_load_uncapped():
+    density = LaplaceDensity(LaplaceDensityConfig(beta_init=0.05))
+    assert density.beta.item() == pytest.approx(0.05)
+    density.set_ceiling(0.01)
+    assert density.beta.item() == pytest.approx(0.01)
+    # Capped: sigma(0) = 0.5 / ceiling, and the learned offset gets no gradient from above the cap.
+    assert density(torch.zeros(1)).item() == pytest.approx(50.0)
+    density(torch.zeros(1)).sum().backward()
+    assert density.beta_offset.grad.item() == 0.0
+    state = {k: v for k, v in density.state_dict().items() if k != "beta_ceiling"}  # written before the cap
+    fresh = LaplaceDensity(LaplaceDensityConfig(beta_init=0.05))
+    fresh.set_ceiling(0.02)
+    fresh.load_state_dict(state)
+    assert math.isinf(fresh.beta_ceiling.item()) and fresh.beta.item() == pytest.approx(0.05)
+    capped = LaplaceDensity(LaplaceDensityConfig(beta_init=0.05))
+    capped.load_state_dict(density.state_dict())
+    assert capped.beta.item() == pytest.approx(0.01)
+
+
+def test_mlp_only_sdf_has_no_grid_and_an_exact_gradient():
+    torch.manual_seed(0)
+    config = SDFFieldConfig(hash_grid=SMALL_GRID, use_hash_grid=False, pe_frequencies=4, hidden_dim=64, n_hidden_layers=3,
+                            sphere_radius=0.4)
+    field = SDFField(config, BOX_MIN, BOX_MAX).double()
+    assert field.encoding is None and not any("encoding" in name for name, _ in field.named_parameters())
+    x = box_points(64, torch.float64)
+    sdf, _, grad = field.forward_with_gradient(x)
+    # Geometric initialisation still gives the sphere.
+    assert torch.allclose(sdf, (x - CENTRE.double()).norm(dim=1) - 0.4, atol=0.025)
+    with torch.no_grad():  # perturb so the positional-encoding columns matter
+        field.layers[0].weight.normal_(0.0, 0.3)
+    sdf, _, grad = field.forward_with_gradient(x)
+    x_ad = x.clone().requires_grad_(True)
+    (autograd,) = torch.autograd.grad(field(x_ad)[0].sum(), x_ad)
+    assert torch.allclose(grad, autograd, atol=1e-10)

@@ -42,7 +42,11 @@ def test_tiny_training_writes_a_valid_model_artifact(tiny_model):
     assert manifest["peak_memory"]["ram_bytes"] > 0 and manifest["config"]["preset"] == "tiny"
     assert np.isfinite(data["final"]["loss"])
     assert len(list((tiny_model / "validation").glob("*.png"))) == 2
-    tensors = [v for v in flatten(load_state(tiny_model / "weights.npz")).values() if v.dtype.kind == "f"]
+    state = flatten(load_state(tiny_model / "weights.npz"))
+    # The beta cap is +inf when the preset does not anneal it; everything else must be finite.
+    ceiling = [k for k in state if k.endswith("density.beta_ceiling")]
+    assert len(ceiling) == 1 and np.isposinf(state.pop(ceiling[0]))
+    tensors = [v for v in state.values() if v.dtype.kind == "f"]
     assert tensors and all(np.isfinite(v).all() for v in tensors)
     assert not tiny_model.with_name("model.work").exists(), "checkpoint directory left behind"
 
@@ -161,3 +165,40 @@ def test_loaded_model_poses_like_the_dataset_and_mesh_vertices_map_back(small_ru
     error = (offset - torch.from_numpy(x_canonical).float()[:, None]).norm(dim=-1)
     error = torch.where(valid, error, torch.inf).amin(dim=1)
     assert (error < 1e-3).float().mean() > 0.95, float((error < 1e-3).float().mean())
+
+
+def test_sdf_encoding_override_and_beta_cap_schedule(small_run):
+    from igavatar.errors import InputError
+    from igavatar.training.config import MLP_SDF, preset, with_overrides
+
+    mlp = with_overrides(preset("tiny"), sdf_encoding="mlp")
+    assert mlp.avatar.sdf.use_hash_grid is False and mlp.avatar.sdf.pe_frequencies == MLP_SDF["pe_frequencies"]
+    assert with_overrides(preset("tiny")).avatar.sdf.use_hash_grid is True
+    with pytest.raises(InputError, match="--sdf-encoding"):
+        with_overrides(preset("tiny"), sdf_encoding="siren")
+    cpu = preset("cpu")
+    assert cpu.beta_final is not None and preset("paper").beta_final is None
+
+    # The cap anneals geometrically from beta_init to beta_final by the anneal fraction, then holds.
+    trainer = _trainer(small_run / "dataset", steps=10, beta_final=0.004, beta_anneal_fraction=0.5)
+    start = trainer.config.avatar.density.beta_init
+    assert trainer.beta_ceiling(0) == pytest.approx(start)
+    assert trainer.beta_ceiling(5) == pytest.approx(0.004) and trainer.beta_ceiling(9) == pytest.approx(0.004)
+    assert trainer.beta_ceiling(2) == pytest.approx(start * (0.004 / start) ** 0.4)
+    logs = [trainer.train_step() for _ in range(6)]
+    assert logs[-1]["beta"] <= 0.004 + 1e-9
+
+
+def test_mlp_only_sdf_trains_without_a_hash_table(small_run):
+    from igavatar.training.config import with_overrides
+
+    config = with_overrides(dataclasses.replace(preset("tiny"), steps=4), sdf_encoding="mlp")
+    manifest = read_artifact(small_run / "dataset", expected="dataset")
+    torch.manual_seed(0)
+    avatar = build_avatar(config, dict(np.load(small_run / "dataset" / "subject.npz")), manifest["data"]["pose_dim"])
+    trainer = Trainer(config, load_training_data(small_run / "dataset", manifest), avatar)
+    assert trainer.optimizer.param_groups[0]["params"] == []  # the hash-table group is empty
+    before = [p.detach().clone() for p in trainer.avatar.sdf_field.parameters()]
+    logs = [trainer.train_step() for _ in range(2)]
+    assert all(np.isfinite(l["loss"]) for l in logs)
+    assert any(not torch.equal(a, b) for a, b in zip(before, trainer.avatar.sdf_field.parameters()))

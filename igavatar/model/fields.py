@@ -50,6 +50,10 @@ class SDFFieldConfig:
     hash_grid: HashGridConfig = field(default_factory=HashGridConfig)
     """Multiresolution hash encoding of the canonical point."""
 
+    use_hash_grid: bool = True
+    """False: a plain MLP on the (positionally encoded) point, no hash grid -- the slow-but-smooth
+    baseline of the quality benchmark (a stand-in for Vid2Avatar-style MLP SDFs)."""
+
     hidden_dim: int = 64
     """Width of the MLP's hidden layers."""
 
@@ -90,9 +94,11 @@ class SDFField(nn.Module):
     def __init__(self, config: SDFFieldConfig, box_min: torch.Tensor, box_max: torch.Tensor) -> None:
         super().__init__()
         self.config = config
-        self.encoding = HashGridEncoding(config.hash_grid, box_min, box_max)
-        centre = 0.5 * (self.encoding.box_min + self.encoding.box_max)
-        half_extent = 0.5 * (self.encoding.box_max - self.encoding.box_min)
+        self.encoding = HashGridEncoding(config.hash_grid, box_min, box_max) if config.use_hash_grid else None
+        box_min = torch.as_tensor(box_min, dtype=torch.float32)
+        box_max = torch.as_tensor(box_max, dtype=torch.float32)
+        centre = 0.5 * (box_min + box_max)
+        half_extent = 0.5 * (box_max - box_min)
         self.register_buffer("centre", centre)
         self.register_buffer("input_scale", half_extent.max().reshape(()))
         # Per-level multipliers of the hash features: all ones except while the hybrid encoding
@@ -101,7 +107,8 @@ class SDFField(nn.Module):
         self.register_buffer(
             "pe_omegas", math.pi * 2.0 ** torch.arange(config.pe_frequencies, dtype=torch.float32)
         )
-        dims = [3 + 6 * config.pe_frequencies + self.encoding.output_dim] + [config.hidden_dim] * config.n_hidden_layers + [config.feature_dim]
+        encoded_dim = self.encoding.output_dim if self.encoding is not None else 0
+        dims = [3 + 6 * config.pe_frequencies + encoded_dim] + [config.hidden_dim] * config.n_hidden_layers + [config.feature_dim]
         self.layers = nn.ModuleList(nn.Linear(d_in, d_out) for d_in, d_out in zip(dims[:-1], dims[1:]))
         self.reset_to_sphere()
 
@@ -161,7 +168,19 @@ class SDFField(nn.Module):
 
     def _feature_scale(self, dtype: torch.dtype) -> torch.Tensor:
         """(C,) multipliers of the encoded features (each level's weight, repeated per feature)."""
+        if self.encoding is None:
+            return self.level_weights.new_zeros(0, dtype=dtype)
         return self.level_weights.to(dtype).repeat_interleave(self.config.hash_grid.n_features_per_level)
+
+    def _encode(self, x_canonical: torch.Tensor) -> torch.Tensor:
+        if self.encoding is None:
+            return x_canonical.new_zeros((x_canonical.shape[0], 0))
+        return self.encoding(x_canonical)
+
+    def _encode_with_jacobian(self, x_canonical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.encoding is None:
+            return x_canonical.new_zeros((x_canonical.shape[0], 0)), x_canonical.new_zeros((x_canonical.shape[0], 0, 3))
+        return self.encoding.forward_with_jacobian(x_canonical)
 
     def _mlp_input(self, x_canonical: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
         x_centred = (x_canonical.to(encoded.dtype) - self.centre.to(encoded.dtype)) / self.input_scale.to(encoded.dtype)
@@ -174,7 +193,7 @@ class SDFField(nn.Module):
 
     def forward(self, x_canonical: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``x_canonical (P, 3)`` -> ``(sdf (P,), feature (P, feature_dim))``, ``sdf = feature[:, 0]``."""
-        h = self._mlp_input(x_canonical, self.encoding(x_canonical))
+        h = self._mlp_input(x_canonical, self._encode(x_canonical))
         beta = self.config.softplus_beta
         for layer in self.layers[:-1]:
             h = F.softplus(layer(h), beta=beta, threshold=_SOFTPLUS_THRESHOLD)
@@ -187,7 +206,7 @@ class SDFField(nn.Module):
         ``grad_sdf = d sdf / d x_canonical`` in closed form; all three outputs are differentiable wrt
         the parameters (a loss on ``grad_sdf`` trains the table and the MLP with one backward pass).
         """
-        encoded, jacobian = self.encoding.forward_with_jacobian(x_canonical)  # (P, C), (P, C, 3)
+        encoded, jacobian = self._encode_with_jacobian(x_canonical)  # (P, C), (P, C, 3); C = 0 without a grid
         h = self._mlp_input(x_canonical, encoded)
         beta = self.config.softplus_beta
         slopes = []
@@ -285,20 +304,31 @@ class LaplaceDensityConfig:
 class LaplaceDensity(nn.Module):
     """``sdf (...) -> sigma (...)``, ``sigma = (1/beta) (0.5 + 0.5 sign(-d) (1 - exp(-|d|/beta)))``.
 
-    Parameter ``beta_offset`` (scalar): ``beta = beta_min + |beta_offset|``. The absolute value (as in
-    VolSDF) keeps beta >= beta_min with a non-zero gradient; a hard clamp would freeze beta for good
-    once an optimiser step pushed it below the bound.
+    Parameter ``beta_offset`` (scalar): ``beta = min(beta_min + |beta_offset|, beta_ceiling)``. The
+    absolute value (as in VolSDF) keeps beta >= beta_min with a non-zero gradient; a hard clamp would
+    freeze beta for good once an optimiser step pushed it below the bound. Buffer ``beta_ceiling``
+    (scalar, +inf unless training anneals it, see TrainConfig.beta_final) caps the learned beta.
     """
 
     def __init__(self, config: LaplaceDensityConfig = LaplaceDensityConfig()) -> None:
         super().__init__()
         self.config = config
         self.beta_offset = nn.Parameter(torch.tensor(config.beta_init - config.beta_min))
+        self.register_buffer("beta_ceiling", torch.tensor(float("inf")))
 
     @property
     def beta(self) -> torch.Tensor:
-        """Current Laplace scale (scalar tensor, differentiable)."""
-        return self.config.beta_min + self.beta_offset.abs()
+        """Current Laplace scale (scalar tensor, differentiable below the ceiling)."""
+        return torch.minimum(self.config.beta_min + self.beta_offset.abs(), self.beta_ceiling)
+
+    def set_ceiling(self, ceiling: float) -> None:
+        """Cap beta at `ceiling` metres (inf: no cap)."""
+        self.beta_ceiling.fill_(ceiling)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        # Models written before the cap existed have no ceiling: they load uncapped.
+        state_dict.setdefault(prefix + "beta_ceiling", torch.tensor(float("inf")))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, sdf: torch.Tensor) -> torch.Tensor:
         """Density of the same shape as ``sdf``; ``0.5 / beta`` at the surface, monotone decreasing."""

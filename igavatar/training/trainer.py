@@ -93,6 +93,12 @@ class Trainer:
             decay *= 0.01 + 0.99 * step / warmup
         return decay
 
+    def beta_ceiling(self, step: int) -> float:
+        """The cap on beta at `step`: geometric from beta_init to beta_final, then constant."""
+        start, end = self.config.avatar.density.beta_init, float(self.config.beta_final)
+        anneal = max(1, int(self.config.beta_anneal_fraction * self.total_steps))
+        return start * (end / start) ** min(1.0, step / anneal)
+
     def _apply_schedule(self) -> None:
         factor = self.learning_rate_factor(self.step)
         for group, base in zip(self.optimizer.param_groups, self._base_lrs):
@@ -101,6 +107,8 @@ class Trainer:
         window = max(1, int(self.config.nonrigid_window_fraction * self.total_steps))
         self.avatar.nonrigid.set_enabled(self.step >= start)
         self.avatar.nonrigid.set_window(min(1.0, max(0.0, (self.step - start) / window)))
+        if self.config.beta_final is not None:
+            self.avatar.density.set_ceiling(self.beta_ceiling(self.step))
         if self.config.regularizer == "hybrid-pe":
             anneal = max(1, int(self.config.hybrid_pe_anneal_fraction * self.total_steps))
             self.avatar.sdf_field.set_level_weights(self.step / anneal)

@@ -1,0 +1,211 @@
+"""Quality benchmark: the paper's regulariser ablation (its Table 5) and an MLP-only baseline.
+
+    python tests/benchmarks/bench_quality.py                       # 2 subjects x 6 variants (~45 min, 2 cores)
+    python tests/benchmarks/bench_quality.py --quick               # a smoke run (tiny sizes)
+    python tests/benchmarks/bench_quality.py --write-results       # also record it in tests/benchmarks/results/
+
+For every subject (different phenotype, garment, texture and seed) it synthesises a capture
+with in-distribution test frames (a second A-pose turn, views between the training views) and
+out-of-distribution ones (walk, arm raise, squat), preprocesses it, then trains every variant
+with the same data, steps and seed and evaluates it on both groups of test frames:
+
+    none, smooth (the paper), fd-eikonal, curvature, hybrid-pe   --regularizer ...
+    mlp                                                           --sdf-encoding mlp, same wall clock as smooth
+
+Each training and evaluation runs as its own `igavatar` process, so peak RAM is that run's.
+The MLP-only SDF gets as many steps as fit in the smooth run's training time (its step time is
+measured by a short probe run first): the stand-in for the slow-but-smooth baseline (the paper's
+Vid2Avatar at 10 minutes). Numbers are measured, never asserted; the table says what they show.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "tests" / "benchmarks" / "results"
+
+#: Subjects: synth options (different phenotype, garment, texture, seed).
+SUBJECTS: dict[str, list[str]] = {
+    "stripes-shirt": ["--seed", "0"],
+    "checker-dress": ["--seed", "7", "--phenotype", "gender=0.9", "--phenotype", "weight=0.3",
+                      "--garment", "dress", "--texture", "checker"],
+}
+VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
+METRICS: tuple[str, ...] = ("psnr_full_db", "ssim_full", "chamfer_l2_cm2", "chamfer_l1_surface_mm",
+                            "normal_consistency_vertices", "normal_consistency_surface", "volumetric_iou")
+SHORT = {"psnr_full_db": "PSNR", "ssim_full": "SSIM", "chamfer_l2_cm2": "CD-L2 cm2", "chamfer_l1_surface_mm": "CD-L1 mm",
+         "normal_consistency_vertices": "NC", "normal_consistency_surface": "NC surf", "volumetric_iou": "IoU"}
+
+
+LOCK: Path | None = None
+
+
+def igavatar(*args: str) -> dict:
+    """Run one igavatar command with --json and return its summary (raises with its stderr on failure).
+
+    With --lock, each command holds that file lock (flock) while it runs, so other jobs that take
+    the same lock never share the CPU with a measured run.
+    """
+    command = [sys.executable, "-m", "igavatar_cli.main", *args, "--json"]
+    if LOCK is not None:
+        command = ["flock", str(LOCK), *command]
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout)
+
+
+def read_json(path: Path) -> dict:
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def group_means(metrics: dict, groups: dict[str, list[str]]) -> dict[str, dict[str, float | None]]:
+    """Mean of every metric over the frames of each group (frames without a value are left out)."""
+    by_frame = {record["frame"]: record["values"] for record in metrics["frames"]}
+    out = {}
+    for group, names in groups.items():
+        out[group] = {}
+        for key in METRICS:
+            values = [by_frame[n][key] for n in names if n in by_frame and by_frame[n].get(key) is not None]
+            out[group][key] = statistics.mean(values) if values else None
+    return out
+
+
+def train_and_eval(run: Path, variant: str, steps: int, args: argparse.Namespace, groups: dict[str, list[str]]) -> dict:
+    model, report = run / f"model-{variant}", run / f"report-{variant}"
+    train_args = ["train", "--run-dir", str(run), "--out", str(model), "--preset", args.preset, "--steps", str(steps),
+                  "--seed", str(args.seed), "--device", args.device]
+    if variant == "mlp":
+        train_args += ["--sdf-encoding", "mlp", "--regularizer", "none"]
+    else:
+        train_args += ["--regularizer", variant]
+    started = time.perf_counter()
+    igavatar(*train_args)
+    train_wall = time.perf_counter() - started
+    manifest = read_json(model / "manifest.json")
+    igavatar("eval", "--run-dir", str(run), "--model", str(model), "--out", str(report), "--mesh-resolution",
+             str(args.mesh_resolution), "--iou-points", str(args.iou_points), "--image-frames", "0",
+             "--seed", str(args.seed), "--device", args.device)
+    speed = manifest["data"]["speed"]
+    return {
+        "variant": variant, "steps": manifest["data"]["steps"],
+        "train_s": manifest["timings"]["train_s"], "train_wall_s": train_wall,
+        "step_s": 1.0 / speed["iterations_per_second"], "peak_ram_gb": manifest["peak_memory"]["ram_bytes"] / 2**30,
+        "metrics": group_means(read_json(report / "metrics.json"), groups),
+    }
+
+
+def probe_step_seconds(run: Path, args: argparse.Namespace) -> float:
+    """Step time of the MLP-only SDF, from a short training run."""
+    out = run / "model-mlp-probe"
+    igavatar("train", "--run-dir", str(run), "--out", str(out), "--preset", args.preset, "--steps", str(args.probe_steps),
+             "--sdf-encoding", "mlp", "--regularizer", "none", "--seed", str(args.seed), "--device", args.device)
+    return 1.0 / read_json(out / "manifest.json")["data"]["speed"]["iterations_per_second"]
+
+
+def run_subject(name: str, synth_args: list[str], args: argparse.Namespace) -> dict:
+    run = args.run_dir / name
+    igavatar("synth", "--run-dir", str(run), "--resolution", str(args.resolution), "--train-frames", str(args.train_frames),
+             "--test-frames", str(args.test_frames), "--holdout-frames", str(args.holdout_frames), *synth_args)
+    igavatar("preprocess", "--run-dir", str(run))
+    frames = read_json(run / "dataset" / "manifest.json")["data"]["splits"]["test"]
+    groups = {
+        "in-distribution": [f for f in frames if f.startswith("test_holdout_")],
+        "out-of-distribution": [f for f in frames if not f.startswith("test_holdout_")],
+    }
+    rows = []
+    for variant in args.variants:
+        if variant == "mlp":
+            smooth = next((r for r in rows if r["variant"] == "smooth"), None)
+            budget = smooth["train_s"] if smooth else args.steps * 0.15
+            steps = max(1, int(budget / probe_step_seconds(run, args)))
+        else:
+            steps = args.steps
+        row = train_and_eval(run, variant, steps, args, groups)
+        rows.append(row)
+        print(f"  {name:<14} {variant:<11} steps {row['steps']:>5} step {row['step_s']:.3f} s  "
+              + "  ".join(f"{SHORT[k]} {v:.3f}" for k, v in row["metrics"]["out-of-distribution"].items() if v is not None),
+              flush=True)
+    return {"subject": name, "synth_args": synth_args, "groups": {k: len(v) for k, v in groups.items()}, "rows": rows}
+
+
+def markdown(results: dict) -> str:
+    """The tables of one benchmark run, per subject and frame group, step time relative to none."""
+    lines = [f"# Quality benchmark ({results['date']})", "", f"Command: `{results['command']}`", "",
+             f"Machine: {results['machine']}. Settings: {json.dumps(results['settings'])}", ""]
+    for subject in results["subjects"]:
+        rows = subject["rows"]
+        base = next((r["step_s"] for r in rows if r["variant"] == "none"), None)
+        for group in ("in-distribution", "out-of-distribution"):
+            lines += [f"## {subject['subject']}: {group} test frames ({subject['groups'][group]})", "",
+                      "| variant | steps | step s | vs none | peak RAM GB | " + " | ".join(SHORT[k] for k in METRICS) + " |",
+                      "|---|---|---|---|---|" + "---|" * len(METRICS)]
+            for row in rows:
+                values = row["metrics"][group]
+                ratio = f"{row['step_s'] / base:.2f}" if base else "-"
+                cells = [("-" if values[k] is None else f"{values[k]:.3f}") for k in METRICS]
+                lines.append(f"| {row['variant']} | {row['steps']} | {row['step_s']:.3f} | {ratio} | {row['peak_ram_gb']:.2f} | "
+                             + " | ".join(cells) + " |")
+            lines.append("")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run-dir", type=Path, default=Path("igavatar-bench-quality"))
+    parser.add_argument("--subjects", default=",".join(SUBJECTS), help=f"comma-separated, of {', '.join(SUBJECTS)}")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--steps", type=int, default=800)
+    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--train-frames", type=int, default=60)
+    parser.add_argument("--test-frames", type=int, default=12, help="out-of-distribution frames (walk, arm raise, squat)")
+    parser.add_argument("--holdout-frames", type=int, default=6, help="in-distribution frames (a second A-pose turn)")
+    parser.add_argument("--mesh-resolution", type=int, default=256)
+    parser.add_argument("--iou-points", type=int, default=200_000)
+    parser.add_argument("--probe-steps", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the script, not the method")
+    parser.add_argument("--lock", type=Path, default=None, help="run every command under `flock LOCK` (shared machines)")
+    parser.add_argument("--write-results", action="store_true", help="record JSON and markdown in tests/benchmarks/results/")
+    args = parser.parse_args()
+    global LOCK
+    LOCK = args.lock
+    if args.quick:
+        args.steps, args.resolution, args.train_frames, args.test_frames, args.holdout_frames = 30, 96, 8, 3, 2
+        args.mesh_resolution, args.iou_points, args.probe_steps = 64, 20_000, 5
+    args.variants = [v for v in args.variants.split(",") if v]
+    unknown = [v for v in args.variants if v not in VARIANTS] + [s for s in args.subjects.split(",") if s not in SUBJECTS]
+    if unknown:
+        parser.error(f"unknown variants/subjects: {unknown}")
+
+    import torch
+
+    results = {
+        "date": datetime.date.today().isoformat(), "command": " ".join(["python", *sys.argv]),
+        "machine": f"{platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}, {args.device}",
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "subjects": [],
+    }
+    for name in args.subjects.split(","):
+        results["subjects"].append(run_subject(name, SUBJECTS[name], args))
+    table = markdown(results)
+    print("\n" + table)
+    if args.write_results:
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        (RESULTS / "quality.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
+        (RESULTS / "quality.md").write_text(table + "\n", encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()
