@@ -292,3 +292,18 @@ def test_yaw_turns_the_posed_body_about_the_vertical(body):
     root = np.asarray(body.skeleton.rest_joints)[0]
     rz = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])
     np.testing.assert_allclose(after - root, (before - root) @ rz.T, atol=1e-9)
+
+
+def test_holdout_frames_are_an_in_distribution_turn_between_the_training_views(body):
+    from stages.synth import make_sequence, sequence_poses
+
+    parts = make_sequence(body, train_frames=8, test_frames=3, seed=0, holdout_frames=4)
+    assert [p.split for p in parts[:2]] == ["train", "test"]
+    holdout = parts[1]
+    assert holdout.frames == tuple(f"test_holdout_{i:04d}" for i in range(4))
+    assert holdout.motion.name == "turntable" and holdout.yaw == pytest.approx(np.pi / 8)
+    # Other small motions than the training turn, and the novel-pose motions still follow.
+    rotations, _ = sequence_poses(body, parts)
+    assert not torch.allclose(rotations[8:12], rotations[0:4])
+    assert {p.motion.name for p in parts[2:]} <= {"walk", "arm_raise", "squat"}
+    assert len(make_sequence(body, 8, 3, 0)) == len(parts) - 1
