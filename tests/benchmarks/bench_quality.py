@@ -82,6 +82,8 @@ def group_means(metrics: dict, groups: dict[str, list[str]]) -> dict[str, dict[s
 
 def train_and_eval(run: Path, variant: str, steps: int, args: argparse.Namespace, groups: dict[str, list[str]]) -> dict:
     model, report = run / f"model-{variant}", run / f"report-{variant}"
+    if args.reuse and (model / "manifest.json").is_file() and (report / "metrics.json").is_file():
+        return _row(variant, model, report, None, groups)
     train_args = ["train", "--run-dir", str(run), "--out", str(model), "--preset", args.preset, "--steps", str(steps),
                   "--seed", str(args.seed), "--device", args.device]
     if variant == "mlp":
@@ -91,13 +93,18 @@ def train_and_eval(run: Path, variant: str, steps: int, args: argparse.Namespace
     started = time.perf_counter()
     igavatar(*train_args)
     train_wall = time.perf_counter() - started
-    manifest = read_json(model / "manifest.json")
     igavatar("eval", "--run-dir", str(run), "--model", str(model), "--out", str(report), "--mesh-resolution",
              str(args.mesh_resolution), "--iou-points", str(args.iou_points), "--image-frames", "0",
              # A surface that touches the canonical box is open: its IoU is then a ray-parity
              # estimate (flagged per row) rather than a gap in the table.
              "--iou-open-meshes",
              "--seed", str(args.seed), "--device", args.device)
+    return _row(variant, model, report, train_wall, groups)
+
+
+def _row(variant: str, model: Path, report: Path, train_wall: float | None, groups: dict[str, list[str]]) -> dict:
+    """One table row from a trained model and its evaluation report."""
+    manifest = read_json(model / "manifest.json")
     speed = manifest["data"]["speed"]
     metrics = read_json(report / "metrics.json")
     return {
@@ -129,7 +136,9 @@ def run_subject(name: str, synth_args: list[str], args: argparse.Namespace) -> d
     }
     rows = []
     for variant in args.variants:
-        if variant == "mlp":
+        if variant == "mlp" and args.reuse and (run / "model-mlp" / "manifest.json").is_file():
+            steps = 0  # read back, not trained
+        elif variant == "mlp":
             smooth = next((r for r in rows if r["variant"] == "smooth"), None)
             budget = smooth["train_s"] if smooth else args.steps * 0.15
             steps = max(1, int(budget / probe_step_seconds(run, args)))
@@ -182,6 +191,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the script, not the method")
+    parser.add_argument("--reuse", action="store_true",
+                        help="read back variants whose model and report already exist (resume an interrupted run)")
+    parser.add_argument("--results-name", default="quality", help="file name (no suffix) under tests/benchmarks/results/")
     parser.add_argument("--lock", type=Path, default=None, help="run every command under `flock LOCK` (shared machines)")
     parser.add_argument("--write-results", action="store_true", help="record JSON and markdown in tests/benchmarks/results/")
     args = parser.parse_args()
@@ -209,8 +221,8 @@ def main() -> None:
     print("\n" + table)
     if args.write_results:
         RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "quality.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
-        (RESULTS / "quality.md").write_text(table + "\n", encoding="utf-8")
+        (RESULTS / f"{args.results_name}.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
+        (RESULTS / f"{args.results_name}.md").write_text(table + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":
