@@ -202,3 +202,13 @@ def test_mlp_only_sdf_trains_without_a_hash_table(small_run):
     logs = [trainer.train_step() for _ in range(2)]
     assert all(np.isfinite(l["loss"]) for l in logs)
     assert any(not torch.equal(a, b) for a, b in zip(before, trainer.avatar.sdf_field.parameters()))
+
+
+def test_a_step_without_valid_samples_is_counted_not_stepped(small_run):
+    trainer = _trainer(small_run / "dataset", steps=4)
+    before = {n: p.detach().clone() for n, p in trainer.avatar.named_parameters()}
+    trainer.canonical_grid.occupied.zero_()  # empty space everywhere: no valid sample on any ray
+    trainer._update_occupancy = lambda: None  # keep the grid empty
+    logs = trainer.train_step()
+    assert trainer.step == 1 and logs["samples"] == 0 and np.isfinite(logs["loss"])
+    assert all(torch.equal(p, before[n]) for n, p in trainer.avatar.named_parameters())

@@ -208,8 +208,11 @@ class Trainer:
         loss = total_loss(terms, config.loss_weights)
 
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        # A step whose rays hit no valid sample (all patches in empty space) has a constant loss:
+        # nothing to learn from it, so it is counted but not stepped.
+        if loss.requires_grad:
+            loss.backward()
+            self.optimizer.step()
         self.step += 1
 
         num_samples = int(valid.sum())
