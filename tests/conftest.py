@@ -64,3 +64,13 @@ def small_run(tmp_path_factory) -> Path:
     run_synth(SynthOptions(out=run / "capture", resolution=96, train_frames=4, test_frames=3, seed=3))
     run_preprocess(PreprocessOptions(capture=run / "capture", out=run / "dataset", max_size=64))
     return run
+
+
+@pytest.fixture(scope="session")
+def tiny_model(small_run, tmp_path_factory) -> Path:
+    """A model artifact trained on `small_run` with the `tiny` preset, shared (read-only) by tests."""
+    from stages.train import TrainOptions, run_train
+
+    out = tmp_path_factory.mktemp("model") / "model"
+    run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
+    return out

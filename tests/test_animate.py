@@ -28,7 +28,6 @@ from igavatar.render.cameras import (
 from igavatar_cli.main import app
 from stages.animate import FRAMING_MARGIN, AnimateOptions, posed_boxes, resolve_motion, run_animate, skinned_cells
 from stages.model_io import load_model
-from stages.train import TrainOptions, run_train
 
 # Tiny renders keep the file well under a minute on two shared cores.
 FAST = dict(resolution=24, samples=8)
@@ -94,13 +93,6 @@ def test_resize_intrinsics_matches_the_pixel_centre_rule():
 
 
 # -------------------------------------------------------------------------------- the stage
-@pytest.fixture(scope="module")
-def tiny_model(small_run, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("model") / "model"
-    run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
-    return out
-
-
 @pytest.fixture(scope="module")
 def walk_animation(tiny_model, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("anim") / "animation"

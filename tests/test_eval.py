@@ -38,17 +38,9 @@ from stages.eval import (
     signed_volume,
     volume_check,
 )
-from stages.train import TrainOptions, run_train
 
 FAST = dict(mesh_resolution=32, surface_samples=300, iou_points=20_000, image_scale=0.25, samples_per_ray=16, image_frames=0,
             device="cpu")
-
-
-@pytest.fixture(scope="module")
-def tiny_model(small_run, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("model") / "model"
-    run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,6 @@ from igavatar.training.config import preset
 from igavatar_cli.main import app
 from stages.export import ExportOptions, canonical_surface, frontal_camera, mesh_maps, posed_surface, run_export
 from stages.model_io import load_model
-from stages.train import TrainOptions, run_train
 
 RESOLUTION = 40  # marching cubes samples: small so the module stays fast on two cores
 
@@ -56,13 +55,6 @@ def sphere_avatar(half_size: float, radius: float, centre=(0.0, 0.0, 0.0)) -> Av
     avatar = Avatar(config, box, torch.ones(1, 4, 4, 4), box[0] - 0.2, box[1] + 0.2, pose_dim=3, init_bones=(0,))
     avatar.sdf_field = SphereSDF(centre, radius, config.sdf.feature_dim)
     return avatar.eval()
-
-
-@pytest.fixture(scope="module")
-def tiny_model(small_run, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("model") / "model"
-    run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
-    return out
 
 
 @pytest.fixture(scope="module")

@@ -27,13 +27,6 @@ def _trainer(dataset: Path, **overrides) -> Trainer:
     return Trainer(config, load_training_data(dataset, manifest), avatar)
 
 
-@pytest.fixture(scope="module")
-def tiny_model(small_run, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("model") / "model"
-    run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
-    return out
-
-
 def test_tiny_training_writes_a_valid_model_artifact(tiny_model):
     manifest = read_artifact(tiny_model, expected="model")
     data = manifest["data"]
