@@ -169,6 +169,9 @@ def train(
         Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe.")
     ] = None,
     smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works).")] = None,
+    smooth_pairs: Annotated[
+        Optional[str], typer.Option(help="L_smooth pairs: valid (consecutive samples on a ray, also across gaps; Eq. 9), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code).")
+    ] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
     ] = None,
@@ -185,7 +188,8 @@ def train(
     layout = RunLayout(run_dir)
     options = TrainOptions(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
-        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, sdf_encoding=sdf_encoding,
+        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs,
+        sdf_encoding=sdf_encoding,
         seed=seed, device=device, resume=resume,
     )
     with RichProgress(err_console, quiet=quiet or json_out) as progress:

@@ -61,6 +61,7 @@ class TrainOptions:
     regularizer: str | None = None
     sdf_encoding: str | None = None
     smooth_weight: float | None = None
+    smooth_pairs: str | None = None
     seed: int = 0
     device: str = "auto"
     resume: bool = False
@@ -82,7 +83,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
     config = with_overrides(
         preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
         samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
-        sdf_encoding=options.sdf_encoding,
+        sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs,
     )
     if options.smooth_weight is not None:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, smooth=options.smooth_weight))

@@ -160,6 +160,52 @@ def test_smooth_loss_is_invariant_to_compaction() -> None:
     assert float(smooth_loss_along_ray(normals, torch.zeros_like(valid))) == 0.0
 
 
+def test_adjacent_pairs_skip_gaps_and_match_a_loop_before_and_after_compaction() -> None:
+    gen = torch.Generator().manual_seed(8)
+    r, s = 6, 10
+    normals = torch.randn(r, s, 3, generator=gen)
+    valid = torch.rand(r, s, generator=gen) > 0.4
+    valid[0] = torch.tensor([1, 1, 0, 0, 1, 1, 1, 0, 0, 1], dtype=torch.bool)  # two runs and a lone sample
+    edges = torch.linspace(0.5, 2.5, s + 1).expand(r, s + 1)
+    starts, ends = edges[:, :-1].contiguous(), edges[:, 1:].contiguous()
+
+    def loop() -> float:
+        per_ray = []
+        for i in range(r):
+            idx = [j for j in range(s) if valid[i, j]]
+            if len(idx) < 2:
+                continue
+            n = torch.nn.functional.normalize(normals[i], dim=-1)
+            total = sum(float((n[a] - n[b]).norm()) for a, b in zip(idx[:-1], idx[1:]) if b == a + 1)
+            per_ray.append(total / len(idx))  # Eq. 9's 1 / N_s^i
+        return sum(per_ray) / len(per_ray)
+
+    got = smooth_loss_along_ray(normals, valid, pairs="adjacent", t_starts=starts, t_ends=ends)
+    assert float(got) == pytest.approx(loop(), rel=1e-5)
+    # Ray 0 alone by hand: pairs (0,1), (4,5), (5,6); the pair (1,4) and (6,9) cross gaps.
+    n0 = torch.nn.functional.normalize(normals[0], dim=-1)
+    hand = sum(float((n0[a] - n0[b]).norm()) for a, b in ((0, 1), (4, 5), (5, 6))) / 6
+    only_0 = torch.zeros_like(valid)
+    only_0[0] = valid[0]
+    assert float(smooth_loss_along_ray(normals, only_0, pairs="adjacent", t_starts=starts, t_ends=ends)) == pytest.approx(hand, rel=1e-5)
+    # "valid" also pairs across the gaps, (1, 4) and (6, 9), so it is larger on this ray.
+    assert float(smooth_loss_along_ray(normals, only_0)) > hand
+    # The same value in the compacted layout (valid samples moved to the front with their intervals).
+    order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices
+    width = int(valid.sum(1).max())
+
+    def pack(x: torch.Tensor) -> torch.Tensor:
+        index = order if x.ndim == 2 else order[..., None].expand_as(x)
+        return torch.gather(x, 1, index)[:, :width]
+
+    packed = smooth_loss_along_ray(
+        pack(normals), pack(valid), pairs="adjacent", t_starts=pack(starts), t_ends=pack(ends)
+    )
+    assert float(packed) == pytest.approx(float(got), rel=1e-6)
+    with pytest.raises(ValueError, match="t_starts"):
+        smooth_loss_along_ray(normals, valid, pairs="adjacent")
+
+
 def test_neighbour_ray_variant_masks_row_and_patch_boundaries() -> None:
     gen = torch.Generator().manual_seed(7)
     p, hp, wp, s = 2, 3, 4, 5

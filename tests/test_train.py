@@ -107,6 +107,22 @@ def test_ablation_regularisers_train(small_run, regularizer):
         assert trainer.avatar.sdf_field.level_weights[-1] < 1, "fine levels should still be closed"
 
 
+@pytest.mark.parametrize("pairs", ["valid", "adjacent", "screen"])
+def test_smooth_pair_variants_train(small_run, pairs):
+    """Each L_smooth pairing runs a step with a finite, positive smooth term; screen pairs use the
+    uncompacted layout (one slot per bin on every ray of the patches)."""
+    trainer = _trainer(small_run / "dataset", steps=8, smooth_pairs=pairs)
+    logs = [trainer.train_step() for _ in range(3)]
+    assert all(np.isfinite(l["loss"]) for l in logs)
+    assert any(l["smooth"] > 0 for l in logs)
+
+
+def test_unknown_smooth_pairs_is_a_clear_error(small_run, cli_runner, tmp_path):
+    result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "m"),
+                                     "--preset", "tiny", "--smooth-pairs", "diagonal"])
+    assert result.exit_code == 2 and "--smooth-pairs" in result.output and "adjacent" in result.output
+
+
 def test_cli_train_resume_without_checkpoint_is_a_clear_error(small_run, cli_runner, tmp_path):
     result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "m"),
                                      "--preset", "tiny", "--resume"])

@@ -166,6 +166,9 @@ def smooth_loss_along_ray(
     gradients: Tensor,
     valid: Tensor,
     normalization: Literal["samples", "pairs"] = "samples",
+    pairs: Literal["valid", "adjacent"] = "valid",
+    t_starts: Tensor | None = None,
+    t_ends: Tensor | None = None,
 ) -> Tensor:
     """Paper Eq. 9: normals at consecutive valid samples of each ray should agree.
 
@@ -174,6 +177,11 @@ def smooth_loss_along_ray(
     Pairs are consecutive in the ray's order of *valid* samples: two valid samples separated by
     invalid slots (skipped empty space) form a pair, exactly as in a packed sample layout, so the
     result is the same before and after :func:`igavatar.render.sampler.compact_samples`.
+
+    ``pairs="adjacent"`` keeps only pairs whose intervals touch (``t_starts`` of the later sample
+    equals ``t_ends`` of the earlier one): a ray that leaves one surface (a forearm), crosses
+    skipped empty space and enters another (the torso) then does not pull the normals of the two
+    surfaces together. Eq. 9 does not say which; the literal reading is ``"valid"``.
 
     Normalisation: per ray, the pair sum is divided by ``N_s^i`` = its number of valid samples,
     as Eq. 9 writes (``normalization="pairs"`` divides by ``N_s^i - 1`` instead, a true mean per
@@ -184,6 +192,8 @@ def smooth_loss_along_ray(
         gradients: (R, S, 3) SDF gradients (or normals; only directions matter).
         valid: (R, S) bool.
         normalization: "samples" (Eq. 9, default) or "pairs".
+        pairs: "valid" (consecutive valid samples, default) or "adjacent" (touching intervals only).
+        t_starts, t_ends: (R, S) sample intervals along the ray; required for ``pairs="adjacent"``.
 
     Returns:
         Scalar; 0 when no ray has a pair.
@@ -197,6 +207,15 @@ def smooth_loss_along_ray(
         raise ValueError(
             f"smooth_loss_along_ray: normalization must be 'samples' or 'pairs', got {normalization!r}"
         )
+    if pairs not in ("valid", "adjacent"):
+        raise ValueError(f"smooth_loss_along_ray: pairs must be 'valid' or 'adjacent', got {pairs!r}")
+    if pairs == "adjacent" and (
+        t_starts is None or t_ends is None or t_starts.shape != valid.shape or t_ends.shape != valid.shape
+    ):
+        raise ValueError(
+            "smooth_loss_along_ray: pairs='adjacent' needs t_starts and t_ends of shape "
+            f"{tuple(valid.shape)}"
+        )
     r, s, _ = gradients.shape
     valid = valid.bool()
     n_hat = F.normalize(gradients, dim=-1, eps=_NORMAL_EPS)
@@ -208,6 +227,15 @@ def smooth_loss_along_ray(
     n_packed = n_hat.new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), n_hat)[:, :s]
     valid_packed = torch.arange(s, device=valid.device)[None, :] < num_valid[:, None]
     pair_valid = valid_packed[:, :-1] & valid_packed[:, 1:]  # (R, S-1)
+    if pairs == "adjacent":
+        def pack(values: Tensor) -> Tensor:
+            return values.new_zeros((r, s + 1)).scatter(1, dest, values)[:, :s]
+
+        starts, ends = pack(t_starts.detach()), pack(t_ends.detach())
+        # Touching intervals share a boundary up to rounding; a skipped bin leaves a gap of one
+        # whole interval, so a tolerance of a hundredth of the interval separates the two.
+        tolerance = 1e-2 * (ends - starts)[:, :-1].abs()
+        pair_valid = pair_valid & ((starts[:, 1:] - ends[:, :-1]).abs() <= tolerance)
     term = _pair_term(n_packed[:, :-1], n_packed[:, 1:])
     per_ray_sum = torch.where(pair_valid, term, torch.zeros_like(term)).sum(dim=1)
     has_pair = num_valid >= 2

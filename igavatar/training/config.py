@@ -23,6 +23,8 @@ from igavatar.model.losses import LossWeights
 
 Regularizer = Literal["smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe"]
 REGULARIZERS: tuple[str, ...] = ("smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe")
+SmoothPairs = Literal["valid", "adjacent", "screen"]
+SMOOTH_PAIRS: tuple[str, ...] = ("valid", "adjacent", "screen")
 PRESETS: tuple[str, ...] = ("paper", "cpu", "tiny")
 SDF_ENCODINGS: tuple[str, ...] = ("hashgrid", "mlp")
 #: The `mlp` SDF: no hash grid, a 6-frequency positional encoding into 4 x 128 Softplus layers --
@@ -64,6 +66,10 @@ class TrainConfig:
     """Weights of the loss terms (paper: rgb 10, alpha 0.1, eikonal 0.1, smooth 1.0)."""
     regularizer: Regularizer = "smooth"
     """Surface regulariser: the paper's along-ray `smooth` or one of the Table-5 ablations."""
+    smooth_pairs: SmoothPairs = "valid"
+    """`smooth`: pair consecutive valid samples (Eq. 9 read literally, also across skipped empty
+    space), only samples of touching intervals ("adjacent"), or the same sample slot on
+    horizontally neighbouring pixels of a patch ("screen", what the released code computes)."""
     fd_eps: float = 1e-3
     """Step (metres) of finite differences for the fd-eikonal / curvature ablations."""
     curvature_warmup_steps: int = 200
@@ -171,6 +177,8 @@ def with_overrides(config: TrainConfig, **overrides) -> TrainConfig:
     encoding = overrides.pop("sdf_encoding", "hashgrid")
     if encoding not in SDF_ENCODINGS:
         raise InputError(f"--sdf-encoding {encoding!r}: expected one of {', '.join(SDF_ENCODINGS)}")
+    if "smooth_pairs" in overrides and overrides["smooth_pairs"] not in SMOOTH_PAIRS:
+        raise InputError(f"--smooth-pairs {overrides['smooth_pairs']!r}: expected one of {', '.join(SMOOTH_PAIRS)}")
     if "regularizer" in overrides and overrides["regularizer"] not in REGULARIZERS:
         raise InputError(f"--regularizer {overrides['regularizer']!r}: expected one of {', '.join(REGULARIZERS)}")
     for name in ("steps", "rays_per_step", "samples_per_ray"):

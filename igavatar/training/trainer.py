@@ -32,13 +32,14 @@ from igavatar.model.losses import (
     linear_warmup,
     rgb_loss,
     smooth_loss_along_ray,
+    smooth_loss_neighbour_rays,
     total_loss,
 )
 from igavatar.model.posed_occupancy import posed_occupancy
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.occupancy import OccupancyGrid
 from igavatar.render.rays import pixel_rays, rays_in_box
-from igavatar.render.sampler import sample_along_rays
+from igavatar.render.sampler import RaySamples, sample_along_rays
 from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
@@ -80,6 +81,7 @@ class Trainer:
             betas=(0.9, 0.99), eps=config.adam_eps,
         )
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
+        self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
         self.rays_seen = 0
@@ -130,15 +132,26 @@ class Trainer:
         self.avatar.eval()
         self.canonical_grid.update(self.avatar.canonical_density, generator=grid_generator)
 
-    def _regulariser_terms(self, out, x_rigid: torch.Tensor, pose: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _regulariser_terms(
+        self, out, samples: RaySamples, x_rigid: torch.Tensor, pose: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
         config = self.config
         valid = out.valid
         terms: dict[str, torch.Tensor] = {}
         reg = config.regularizer
         if reg in ("smooth", "none", "curvature", "hybrid-pe"):
             terms["eikonal"] = eikonal_loss(out.gradient[valid])
-        if reg == "smooth":
-            terms["smooth"] = smooth_loss_along_ray(out.gradient, valid)
+        if reg == "smooth" and config.smooth_pairs == "screen":
+            # Rays are patch by patch, row-major (sample_patch_pixels); samples are not compacted,
+            # so slot s is about the same depth on neighbouring rays.
+            rays, slots = valid.shape
+            edge = math.isqrt(rays // self._patches_per_step)
+            shape = (self._patches_per_step, edge, edge, slots)
+            terms["smooth"] = smooth_loss_neighbour_rays(out.gradient.reshape(*shape, 3), valid.reshape(shape))
+        elif reg == "smooth":
+            terms["smooth"] = smooth_loss_along_ray(
+                out.gradient, valid, pairs=config.smooth_pairs, t_starts=samples.t_starts, t_ends=samples.t_ends
+            )
         if reg in ("fd-eikonal", "curvature", "fd-eikonal+curvature") and x_rigid.shape[0] > 0:
             x = self.avatar.offset_points(x_rigid, pose)
 
@@ -173,6 +186,7 @@ class Trainer:
         )
 
         n_patches = max(1, config.rays_per_step // config.patch_size**2)
+        self._patches_per_step = n_patches
         pixels = sample_patch_pixels(
             data.mask_pixels(index), data.image_size, n_patches, config.patch_size,
             config.patch_centres_in_mask, self.generator,
@@ -185,7 +199,10 @@ class Trainer:
         origins, directions = pixel_rays(data.K[index].to(device), data.w2c[index].to(device), pixels.to(device, torch.float32))
         rays = rays_in_box(origins, directions, posed_box[0], posed_box[1])
         sample_generator = torch.Generator(device=device).manual_seed(int(torch.randint(0, 2**62, (1,), generator=self.generator)))
-        samples = sample_along_rays(rays, config.samples_per_ray, posed_grid.is_occupied, generator=sample_generator)
+        screen_pairs = config.regularizer == "smooth" and config.smooth_pairs == "screen"
+        samples = sample_along_rays(
+            rays, config.samples_per_ray, posed_grid.is_occupied, generator=sample_generator, compact=not screen_pairs
+        )
 
         # Map every kept posed sample to canonical space once; samples without a root are empty.
         x_rigid, found = self.avatar.correspond(samples.valid_positions(), frame, pose)
@@ -204,7 +221,7 @@ class Trainer:
 
         out = render_rays(canonical_samples, field_fn, background)
         terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
-        terms.update(self._regulariser_terms(out, x_rigid, pose))
+        terms.update(self._regulariser_terms(out, canonical_samples, x_rigid, pose))
         loss = total_loss(terms, config.loss_weights)
 
         self.optimizer.zero_grad(set_to_none=True)

@@ -11,6 +11,7 @@ with the same data, steps and seed and evaluates it on both groups of test frame
 
     none, smooth (the paper), fd-eikonal, curvature, hybrid-pe   --regularizer ...
     mlp                                                           --sdf-encoding mlp, same wall clock as smooth
+    smooth-adjacent, smooth-screen, smooth-w0.375 (on request)    how L_smooth pairs samples, its weight
 
 Each training and evaluation runs as its own `igavatar` process, so peak RAM is that run's.
 The MLP-only SDF gets as many steps as fit in the smooth run's training time (its step time is
@@ -40,6 +41,12 @@ SUBJECTS: dict[str, list[str]] = {
                       "--garment", "dress", "--texture", "checker"],
 }
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
+#: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
+SMOOTH_VARIANTS: dict[str, list[str]] = {
+    "smooth-adjacent": ["--regularizer", "smooth", "--smooth-pairs", "adjacent"],
+    "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
+    "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
+}
 METRICS: tuple[str, ...] = ("psnr_full_db", "ssim_full", "chamfer_l2_cm2", "chamfer_l1_surface_mm",
                             "normal_consistency_vertices", "normal_consistency_surface", "volumetric_iou")
 SHORT = {"psnr_full_db": "PSNR", "ssim_full": "SSIM", "chamfer_l2_cm2": "CD-L2 cm2", "chamfer_l1_surface_mm": "CD-L1 mm",
@@ -88,6 +95,8 @@ def train_and_eval(run: Path, variant: str, steps: int, args: argparse.Namespace
                   "--seed", str(args.seed), "--device", args.device]
     if variant == "mlp":
         train_args += ["--sdf-encoding", "mlp", "--regularizer", "none"]
+    elif variant in SMOOTH_VARIANTS:
+        train_args += SMOOTH_VARIANTS[variant]
     else:
         train_args += ["--regularizer", variant]
     started = time.perf_counter()
@@ -178,7 +187,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, default=Path("igavatar-bench-quality"))
     parser.add_argument("--subjects", default=",".join(SUBJECTS), help=f"comma-separated, of {', '.join(SUBJECTS)}")
-    parser.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help=f"comma-separated, of {', '.join((*VARIANTS, *SMOOTH_VARIANTS))}")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--steps", type=int, default=800)
     parser.add_argument("--resolution", type=int, default=256)
@@ -203,7 +213,8 @@ def main() -> None:
         args.steps, args.resolution, args.train_frames, args.test_frames, args.holdout_frames = 30, 96, 8, 3, 2
         args.mesh_resolution, args.iou_points, args.probe_steps = 64, 20_000, 5
     args.variants = [v for v in args.variants.split(",") if v]
-    unknown = [v for v in args.variants if v not in VARIANTS] + [s for s in args.subjects.split(",") if s not in SUBJECTS]
+    unknown = [v for v in args.variants if v not in VARIANTS and v not in SMOOTH_VARIANTS]
+    unknown += [s for s in args.subjects.split(",") if s not in SUBJECTS]
     if unknown:
         parser.error(f"unknown variants/subjects: {unknown}")
 
