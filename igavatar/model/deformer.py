@@ -13,6 +13,11 @@ through `attach_implicit_gradient` (implicit function theorem).
 
 Every method takes its frame data from the `PreparedFrame` it is given: no state is kept between
 calls, and tensors may live on any device.
+
+Fast path: on CPU float32 tensors the root finding, the start selection and no-grad forward LBS
+run in the C++ kernel ``igavatar/kernels/csrc/skinning.cpp`` (one start per loop iteration, all
+state in registers, channel-last grids). ``_broyden_reference`` and the ``sample_grid`` lookups are
+the PyTorch reference it is tested against; ``IGAVATAR_KERNELS=0`` uses them everywhere.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import torch
 from torch import nn
 
 from igavatar.errors import InputError
+from igavatar.kernels import load_kernel
 from igavatar.skinning.grid import (
     apply_affine,
     blended_transform_grid,
@@ -107,6 +113,10 @@ class PreparedFrame:
     """(I0,) long indices of the bones whose inverses give start points."""
     init_inverse: torch.Tensor
     """(I0, 3, 4) top rows of `inverse(B_i)` for the init bones (posed -> canonical, rigid)."""
+    blended_grid_last: torch.Tensor | None = None
+    """(D, H, W, 12) channel-last copy of `blended_grid` for the C++ kernel (None: no kernel)."""
+    init_weights_last: torch.Tensor | None = None
+    """(D, H, W, I0) channel-last init-bone weights for the kernel's start selection (or None)."""
 
     @property
     def num_candidates(self) -> int:
@@ -139,6 +149,13 @@ def select_candidates(
     best = torch.where(any_valid, best, torch.zeros_like(best))
     chosen = torch.gather(candidates, 1, best[:, None, None].expand(-1, 1, 3)).squeeze(1)
     return chosen, any_valid
+
+
+def _skinning_kernel(*tensors: torch.Tensor):
+    """The compiled skinning kernel when every tensor is a float32 CPU tensor, else None."""
+    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+        return None
+    return load_kernel("skinning")
 
 
 def _lbs_and_transform(frame: PreparedFrame, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -178,7 +195,24 @@ def _broyden(
     x_init: torch.Tensor,
     config: DeformerConfig,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Solve LBS(x) = x_target from x_init with Broyden's good method.
+    """Solve LBS(x) = x_target from x_init: the C++ kernel when it applies, else the reference."""
+    kernel = _skinning_kernel(x_target, x_init) if frame.blended_grid_last is not None else None
+    if kernel is None:
+        return _broyden_reference(frame, x_target, x_init, config)
+    x_best, residual_best = kernel.broyden(
+        frame.blended_grid_last, frame.box_min, frame.box_max, x_target.contiguous(), x_init.contiguous(),
+        config.max_iterations, config.converge_threshold, config.diverge_threshold,
+    )
+    return x_best, residual_best
+
+
+def _broyden_reference(
+    frame: PreparedFrame,
+    x_target: torch.Tensor,
+    x_init: torch.Tensor,
+    config: DeformerConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Solve LBS(x) = x_target from x_init with Broyden's good method (plain PyTorch).
 
     Args:
         x_target: (N, 3) posed points (one per start).
@@ -332,15 +366,40 @@ class FastSnarfDeformer(nn.Module):
             init_bones = torch.tensor(self.config.init_bones, dtype=torch.long, device=device)
         # Start points are computed without autograd, so the inverse needs no history.
         init_inverse = torch.linalg.inv(bone_transforms.detach()[init_bones])[:, :3, :]
+        blended_last = init_weights_last = None
+        if _skinning_kernel(self.weights_grid) is not None and not self.weights_grid.requires_grad:
+            # The kernel reads channel-last grids (a lookup = 8 runs of adjacent floats). The
+            # blended grid is built in that layout and the reference layout is a view of it, so a
+            # prepared frame costs no more memory than before.
+            weights_last, init_weights_last = self._channel_last_weights(init_bones)
+            affine = bone_transforms[:, :3, :].reshape(self.num_joints, 12).to(weights_last.dtype)
+            blended_last = weights_last @ affine  # (D, H, W, 12)
+            blended_grid = blended_last.permute(3, 0, 1, 2)
+        else:
+            blended_grid = blended_transform_grid(self.weights_grid, bone_transforms)
         return PreparedFrame(
-            blended_grid=blended_transform_grid(self.weights_grid, bone_transforms),
+            blended_grid=blended_grid,
             weights_grid=self.weights_grid,
             box_min=self.box_min,
             box_max=self.box_max,
             bone_transforms=bone_transforms,
             init_bones=init_bones,
             init_inverse=init_inverse,
+            blended_grid_last=None if blended_last is None else blended_last.detach(),
+            init_weights_last=init_weights_last,
         )
+
+    def _channel_last_weights(self, init_bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(D, H, W, J) weights and (D, H, W, I0) init-bone weights, made once per grid and device."""
+        # _version changes on in-place writes (load_state_dict), data_ptr on moves and replacements.
+        grid = self.weights_grid
+        key = (grid.data_ptr(), grid._version, grid.device, tuple(init_bones.tolist()))
+        cached = getattr(self, "_weights_last_cache", None)
+        if cached is None or cached[0] != key:
+            weights_last = self.weights_grid.detach().permute(1, 2, 3, 0).contiguous()
+            cached = (key, weights_last, weights_last[..., init_bones].contiguous())
+            self._weights_last_cache = cached
+        return cached[1], cached[2]
 
     def candidates_per_point(self, frame: PreparedFrame) -> int:
         """I, the candidate count per point of `canonicalize` for this frame."""
@@ -351,7 +410,12 @@ class FastSnarfDeformer(nn.Module):
     def forward_skinning(self, x_canonical: torch.Tensor, frame: PreparedFrame) -> torch.Tensor:
         """LBS of canonical points: (P, 3) -> posed world (P, 3); differentiable in x and frame."""
         _check_points(x_canonical, "x_canonical")
-        return _lbs_and_transform(frame, x_canonical.to(frame.blended_grid.dtype))[0]
+        x = x_canonical.to(frame.blended_grid.dtype)
+        recording = torch.is_grad_enabled() and (x.requires_grad or frame.blended_grid.requires_grad)
+        kernel = _skinning_kernel(x) if frame.blended_grid_last is not None and not recording else None
+        if kernel is not None:
+            return kernel.lbs(frame.blended_grid_last, frame.box_min, frame.box_max, x.contiguous())
+        return _lbs_and_transform(frame, x)[0]
 
     def initial_points(self, x_posed: torch.Tensor, frame: PreparedFrame) -> torch.Tensor:
         """Start points: posed points rigidly un-posed by each init bone, (P, 3) -> (P, I, 3).
@@ -365,11 +429,15 @@ class FastSnarfDeformer(nn.Module):
         if top_k is None or top_k >= frame.num_candidates:
             return x_init
         num_points, num_init = x_init.shape[:2]
-        init_weights = sample_grid(
-            frame.weights_grid.detach()[frame.init_bones], frame.box_min, frame.box_max,
-            x_init.reshape(-1, 3),
-        ).reshape(num_points, num_init, num_init)
-        self_weight = torch.diagonal(init_weights, dim1=1, dim2=2)
+        kernel = _skinning_kernel(x_init) if frame.init_weights_last is not None else None
+        if kernel is not None:
+            self_weight = kernel.sample_diagonal(frame.init_weights_last, frame.box_min, frame.box_max, x_init.contiguous())
+        else:
+            init_weights = sample_grid(
+                frame.weights_grid.detach()[frame.init_bones], frame.box_min, frame.box_max,
+                x_init.reshape(-1, 3),
+            ).reshape(num_points, num_init, num_init)
+            self_weight = torch.diagonal(init_weights, dim1=1, dim2=2)
         order = self_weight.topk(top_k, dim=1).indices
         return torch.gather(x_init, 1, order.unsqueeze(-1).expand(-1, -1, 3))
 
@@ -401,6 +469,8 @@ class FastSnarfDeformer(nn.Module):
             bone_transforms=frame.bone_transforms.detach(),
             init_bones=frame.init_bones,
             init_inverse=frame.init_inverse.detach(),
+            blended_grid_last=frame.blended_grid_last,
+            init_weights_last=frame.init_weights_last,
         )
         candidates, valid = [], []
         for chunk in x_posed.split(self.config.chunk_size):

@@ -1,0 +1,106 @@
+"""Optional C++/OpenMP CPU kernels, compiled lazily on first use, each behind its PyTorch reference.
+
+    from igavatar.kernels import load_kernel
+    module = load_kernel("skinning")        # None: use the plain PyTorch path
+    if module is not None and kernel_applies(x): y = module.broyden(...)
+
+Sources live in ``csrc/<name>.cpp`` next to this file. Nothing compiles at import time: the first
+call of :func:`load_kernel` builds the extension with ``torch.utils.cpp_extension.load`` (ninja and
+a C++ compiler; about 30-60 s per kernel on 2 cores) into a per-torch-version cache directory, and
+later processes load the cached library in milliseconds. When the build fails (no compiler, no
+ninja) the caller gets None, falls back to the reference path, and one line on stderr says why.
+
+``IGAVATAR_KERNELS=0`` turns every kernel off (the reference path everywhere, e.g. to compare);
+``IGAVATAR_KERNEL_CACHE`` moves the build directory (default ``~/.cache/igavatar/kernels``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import threading
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+__all__ = ["kernel_status", "kernels_enabled", "load_kernel", "set_kernels_enabled"]
+
+_SOURCE_DIR = Path(__file__).resolve().parent / "csrc"
+_LOG = logging.getLogger(__name__)
+_LOCK = threading.Lock()
+_LOADED: dict[str, ModuleType | None] = {}
+_FAILURES: dict[str, str] = {}
+_OVERRIDE: bool | None = None
+
+
+def kernels_enabled() -> bool:
+    """Whether the fast kernels may be used: ``set_kernels_enabled`` if called, else the env var."""
+    if _OVERRIDE is not None:
+        return _OVERRIDE
+    return os.environ.get("IGAVATAR_KERNELS", "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def set_kernels_enabled(enabled: bool | None) -> None:
+    """Force the kernels on/off in this process (None: back to ``IGAVATAR_KERNELS``); for benchmarks and tests."""
+    global _OVERRIDE
+    _OVERRIDE = enabled
+
+
+def _cache_dir(name: str, source: bytes) -> Path:
+    root = Path(os.environ.get("IGAVATAR_KERNEL_CACHE", Path.home() / ".cache" / "igavatar" / "kernels"))
+    # One directory per torch build and source text: a stale library is never loaded.
+    digest = hashlib.sha1(source + torch.__version__.encode()).hexdigest()[:12]
+    return root / f"{name}-{digest}"
+
+
+def load_kernel(name: str) -> ModuleType | None:
+    """The compiled extension ``csrc/<name>.cpp``, building it on first use; None when disabled or unbuildable."""
+    if not kernels_enabled():
+        return None
+    with _LOCK:
+        if name in _LOADED:
+            return _LOADED[name]
+        module = None
+        try:
+            module = _build(name)
+        except Exception as error:  # noqa: BLE001 - any build failure means "use the reference"
+            reason = " ".join(str(error).split())[:300]
+            _FAILURES[name] = reason
+            # One line through logging (the library never prints); with no logging set up,
+            # Python's last-resort handler writes it to stderr.
+            _LOG.warning("igavatar: fast CPU kernel %r unavailable (%s); using the PyTorch path", name, reason)
+        _LOADED[name] = module
+        return module
+
+
+def _build(name: str) -> ModuleType:
+    from torch.utils import cpp_extension
+
+    source_path = _SOURCE_DIR / f"{name}.cpp"
+    build_dir = _cache_dir(name, source_path.read_bytes())
+    build_dir.mkdir(parents=True, exist_ok=True)
+    return cpp_extension.load(
+        name=f"igavatar_{name}",
+        sources=[str(source_path)],
+        build_directory=str(build_dir),
+        # No -march=native: the cached library must not depend on the CPU it was built on.
+        extra_cflags=["-O3", "-fopenmp"],
+        extra_ldflags=["-fopenmp"],
+        verbose=False,
+    )
+
+
+def kernel_status() -> dict[str, str]:
+    """name -> "loaded" / "failed: why" / "disabled" for every kernel source (benchmarks print it)."""
+    status = {}
+    for source in sorted(_SOURCE_DIR.glob("*.cpp")):
+        name = source.stem
+        if not kernels_enabled():
+            status[name] = "disabled"
+        elif name in _FAILURES:
+            status[name] = f"failed: {_FAILURES[name]}"
+        else:
+            status[name] = "loaded" if _LOADED.get(name) is not None else "not built yet"
+    return status
