@@ -1,4 +1,4 @@
-"""Instant-NGP multiresolution hash encoding in plain PyTorch, with a closed-form spatial Jacobian.
+"""Instant-NGP multiresolution hash encoding with a closed-form spatial Jacobian: C++ fast path + PyTorch reference.
 
     grid = HashGridEncoding(HashGridConfig(), box_min=torch.tensor([-1.0] * 3), box_max=torch.ones(3))
     features, jacobian = grid.forward_with_jacobian(x_canonical)  # (P, 32), (P, 32, 3)
@@ -23,6 +23,15 @@ the trilinear weights. It is built from ordinary differentiable tensor operation
 corner features, so the gradient of any loss on the Jacobian (e.g. an eikonal loss) flows into the
 table without a double backward through the encoding. ``hashgrid_reference`` is a loop-per-level,
 loop-per-corner implementation used by the tests as the ground truth.
+
+Two implementations of one encoding: for a float32 table and float32 points on the CPU, ``_encode``
+runs the C++/OpenMP kernel ``igavatar/kernels/csrc/hashgrid.cpp`` (features, Jacobian and their
+backward in closed form, wrapped in the autograd function ``_HashGridKernel``; compiled on first use
+by :func:`igavatar.kernels.load_kernel`). Every other case (float64, CUDA, kernels disabled with
+``IGAVATAR_KERNELS=0`` or unbuildable) runs ``_encode_reference``, the vectorised PyTorch code
+described above, which the kernel matches to float32 rounding. The kernel's backward is
+``once_differentiable``: a loss on the Jacobian trains the table and the points with one backward,
+but a double backward through the encoding needs the reference (float64).
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from igavatar import kernels
 from igavatar.errors import InputError
 
 # Instant-NGP / tiny-cuda-nn spatial-hash primes for the x, y, z axes.
@@ -216,6 +226,37 @@ class HashGridEncoding(nn.Module):
         return x_canonical.split(self.config.grad_chunk_size if recording else self.config.chunk_size)
 
     def _encode(self, x_canonical: torch.Tensor, with_jacobian: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """One chunk: the C++ kernel for float32 CPU table and points when it loads, else the reference."""
+        table = self.table
+        if (
+            table.dtype == torch.float32 and x_canonical.dtype == torch.float32
+            and table.device.type == "cpu" and x_canonical.device.type == "cpu"
+        ):
+            kernel = kernels.load_kernel("hashgrid")  # lazy: compiled/loaded on first use
+            if kernel is not None:
+                return self._encode_kernel(kernel, x_canonical, with_jacobian)
+        return self._encode_reference(x_canonical, with_jacobian)
+
+    def _encode_kernel(
+        self, kernel, x_canonical: torch.Tensor, with_jacobian: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        grid = _KernelGrid(
+            kernel=kernel,
+            offsets=self._offset,
+            resolutions=self._resolution_int,
+            multipliers=self._multiplier,
+            n_dense=self.n_dense_levels,
+            hashmap_size=self.config.hashmap_size,
+            box_min=self.box_min.to(torch.float32).contiguous(),
+            box_max=self.box_max.to(torch.float32).contiguous(),
+        )
+        features, jacobian = _HashGridKernel.apply(x_canonical, self.table, grid, with_jacobian)
+        return features, (jacobian if with_jacobian else None)
+
+    def _encode_reference(
+        self, x_canonical: torch.Tensor, with_jacobian: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """One chunk in PyTorch ops (any dtype/device): the semantics the C++ kernel reproduces."""
         # Layout: every intermediate is (..., L, P) or (..., L * P * F) with the point axis innermost
         # and contiguous, so each elementwise op is one long vectorised loop. Broadcasting over small
         # inner axes (the 2 corners of an axis, the F features) was ~6x slower on CPU.
@@ -287,6 +328,55 @@ class HashGridEncoding(nn.Module):
         jacobian = torch.stack((d_dx, d_dy, d_dz)).view(3, n_levels, n_points, n_feat)
         jacobian = jacobian.permute(2, 1, 3, 0).reshape(n_points, cfg.output_dim, 3)
         return features, jacobian
+
+
+@dataclass(frozen=True)
+class _KernelGrid:
+    """Everything the C++ kernel needs besides the points and the table (constants: no gradient)."""
+
+    kernel: object
+    offsets: torch.Tensor
+    resolutions: torch.Tensor
+    multipliers: torch.Tensor
+    n_dense: int
+    hashmap_size: int
+    box_min: torch.Tensor
+    box_max: torch.Tensor
+
+    def args(self) -> tuple:
+        return (self.offsets, self.resolutions, self.multipliers, self.n_dense, self.hashmap_size,
+                self.box_min, self.box_max)
+
+
+class _HashGridKernel(torch.autograd.Function):
+    """``(x (P, 3), table (R, F)) -> (features (P, C), jacobian (P, C, 3) or empty)`` via the C++ kernel."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, table: torch.Tensor, grid: _KernelGrid, with_jacobian: bool):
+        x = x.contiguous()
+        table = table.contiguous()
+        features, jacobian = grid.kernel.forward(x, table, *grid.args(), with_jacobian)
+        ctx.save_for_backward(x, table)
+        ctx.grid = grid
+        ctx.set_materialize_grads(False)
+        if not with_jacobian:
+            ctx.mark_non_differentiable(jacobian)
+        return features, jacobian
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_features: torch.Tensor | None, grad_jacobian: torch.Tensor | None):
+        need_x, need_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if (grad_features is None and grad_jacobian is None) or not (need_x or need_table):
+            return None, None, None, None
+        x, table = ctx.saved_tensors
+        empty = x.new_empty(0)
+        grad_features = empty if grad_features is None else grad_features.contiguous()
+        grad_jacobian = empty if grad_jacobian is None or grad_jacobian.numel() == 0 else grad_jacobian.contiguous()
+        grad_table, grad_x = ctx.grid.kernel.backward(
+            grad_features, grad_jacobian, x, table, *ctx.grid.args(), need_x, need_table
+        )
+        return (grad_x if need_x else None), (grad_table if need_table else None), None, None
 
 
 def hashgrid_reference(
