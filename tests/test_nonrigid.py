@@ -20,7 +20,7 @@ def _enabled_module(**overrides) -> NonRigidOffset:
 def test_disabled_returns_zeros_without_running_the_mlp():
     module = NonRigidOffset(NonRigidConfig(pose_dim=5))
     calls = []
-    module.hidden.register_forward_hook(lambda *args: calls.append(1))
+    module.output.register_forward_hook(lambda *args: calls.append(1))
     offsets = module(torch.rand(7, 3), torch.rand(5))
     assert torch.equal(offsets, torch.zeros(7, 3)) and calls == []
     module.set_enabled(True)
@@ -122,3 +122,28 @@ def test_schedule_state_round_trips_through_state_dict():
     assert restored.enabled and restored.alpha == module.alpha
     x, pose = torch.rand(5, 3), torch.rand(3)
     torch.testing.assert_close(restored(x, pose), module(x, pose))
+
+
+def test_shared_pose_fast_path_equals_the_reference_in_value_and_gradients():
+    """The first layer's pose columns applied once (fast path) against the concatenated network."""
+    torch.manual_seed(0)
+    net = NonRigidOffset(NonRigidConfig(pose_dim=40, hidden_width=32, hidden_layers=3, last_layer_init_std=0.1))
+    net.set_enabled(True)
+    net.set_window(0.7)
+    x = (torch.rand(500, 3) * 2 - 1).requires_grad_(True)
+    pose = torch.randn(40)
+    results = []
+    for path in (net._forward_shared_pose, net._forward_reference):
+        net.zero_grad()
+        x.grad = None
+        out = path(x, pose, None)
+        (out * torch.linspace(-1, 1, out.numel()).reshape(out.shape)).sum().backward()
+        results.append((out.detach(), x.grad.clone(), {n: p.grad.clone() for n, p in net.named_parameters()}))
+    (fast, fast_x, fast_params), (ref, ref_x, ref_params) = results
+    torch.testing.assert_close(fast, ref, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(fast_x, ref_x, atol=1e-6, rtol=1e-5)
+    for name in ref_params:
+        torch.testing.assert_close(fast_params[name], ref_params[name], atol=1e-6, rtol=1e-4)
+    # forward() takes the fast path for a shared pose, the reference for per-point poses.
+    torch.testing.assert_close(net(x, pose), fast)
+    torch.testing.assert_close(net(x, pose.expand(500, 40)), ref)

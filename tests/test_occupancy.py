@@ -213,3 +213,20 @@ def test_missed_rays_get_no_samples() -> None:
     rays = rays_in_box(origins, directions, -torch.ones(3), torch.ones(3))
     samples = sample_along_rays(rays, 8)
     assert samples.valid.sum(1).tolist() == [0, 8]
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_max_filter_equals_max_pool3d(radius):
+    """The separable max filter against its reference, max_pool3d, on random and sparse grids."""
+    import torch.nn.functional as F
+
+    from igavatar.render.occupancy import max_filter_3d
+
+    generator = torch.Generator().manual_seed(radius)
+    dense = torch.rand(9, 5, 13, generator=generator)
+    sparse = (torch.rand(16, 16, 16, generator=generator) > 0.97).float()
+    tiny = torch.rand(1, 2, 3, generator=generator)
+    for values in (dense, sparse, tiny):
+        expected = F.max_pool3d(values[None, None], 2 * radius + 1, stride=1, padding=radius)[0, 0]
+        assert torch.equal(max_filter_3d(values, radius), expected)
+    assert torch.equal(max_filter_3d(dense, 0), dense)

@@ -13,10 +13,9 @@ a few milliseconds, so every frame (training or animation) gets its own, never t
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from igavatar.model.deformer import FastSnarfDeformer, PreparedFrame
-from igavatar.render.occupancy import OccupancyGrid
+from igavatar.render.occupancy import OccupancyGrid, max_filter_3d
 
 
 @torch.no_grad()
@@ -54,8 +53,6 @@ def posed_occupancy(
     ijk = ijk[inside]
     grid = torch.zeros_like(posed.occupied, dtype=torch.float32)
     grid[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = 1.0
-    if dilation > 0:
-        size = 2 * dilation + 1
-        grid = F.max_pool3d(grid[None, None], size, stride=1, padding=dilation)[0, 0]
+    grid = max_filter_3d(grid, dilation)
     posed.occupied.copy_(grid > 0)
     return posed
