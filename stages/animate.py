@@ -43,6 +43,7 @@ from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_
 from igavatar.mesh.posing import canonical_mesh, pose_canonical_vertices, vertex_colors
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import resize_intrinsics, turntable_cameras
+from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes
@@ -444,6 +445,7 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
     if options.meshes and options.mesh_resolution < 16:
         raise InputError(f"--mesh-resolution {options.mesh_resolution}: expected at least 16")
     device = resolve_device(options.device)
+    build_kernels(device, progress)
     if not (Path(options.model) / "manifest.json").is_file():
         raise ArtifactError(f"{options.model}: no model artifact there; run `igavatar train` first, or pass --model DIR")
     model = load_model(Path(options.model), device)

@@ -69,6 +69,7 @@ from igavatar.metrics.report import (
     metric_curves_image,
 )
 from igavatar.model.render_avatar import render_avatar_view
+from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes
@@ -574,6 +575,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
                 f"{len(matching.extra)} scan(s) in {gt_dir} name no frame of the dataset: {', '.join(matching.extra[:5])}"
             )
     device = resolve_device(options.device)
+    build_kernels(device, progress)
     tick = time.perf_counter()
     model = load_model(model_dir, device)
     _check_compatible(model, dataset_dir, dataset_manifest)

@@ -69,6 +69,7 @@ from igavatar.mesh.posing import pose_canonical_vertices, vertex_colors, vertex_
 from igavatar.model.avatar import Avatar
 from igavatar.model.deformer import PreparedFrame
 from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values
+from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes
@@ -545,6 +546,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     _check_options(options)
     timings: dict[str, float] = {}
     device = resolve_device(options.device)
+    build_kernels(device, progress)
     out, model_path = Path(options.out), Path(options.model)
     if model_path.resolve() == out.resolve():
         raise InputError(f"--out {out}: is the model directory itself; write the mesh elsewhere")

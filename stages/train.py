@@ -38,6 +38,7 @@ from igavatar.training.config import TrainConfig, preset, with_overrides
 from igavatar.training.data import TrainingData
 from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_samples
 from igavatar.training.trainer import Trainer
+from stages.kernels import build_kernels
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes
 
@@ -198,6 +199,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     dataset = Path(options.dataset)
     manifest = read_artifact(dataset, expected="dataset")
     device = resolve_device(options.device)
+    build_kernels(device, progress)
     config = resolve_config(options)
     torch.manual_seed(config.seed)
     subject = dict(np.load(dataset / "subject.npz"))

@@ -10,7 +10,9 @@ a C++ compiler; about 30-60 s per kernel on 2 cores) into a per-torch-version ca
 later processes load the cached library in milliseconds. When the build fails (no compiler, no
 ninja) the caller gets None, falls back to the reference path, and one line on stderr says why.
 
-``IGAVATAR_KERNELS=0`` turns every kernel off (the reference path everywhere, e.g. to compare);
+``IGAVATAR_KERNELS=0`` turns every fast path off, the kernels and the PyTorch-level shortcuts
+that consult :func:`kernels_enabled` (the non-rigid MLP's shared-pose first layer): the reference
+path everywhere, e.g. to compare;
 ``IGAVATAR_KERNEL_CACHE`` moves the build directory (default ``~/.cache/igavatar/kernels``).
 """
 
@@ -25,10 +27,12 @@ from types import ModuleType
 
 import torch
 
-__all__ = ["kernel_status", "kernels_enabled", "load_kernel", "set_kernels_enabled"]
+__all__ = ["KERNEL_NAMES", "kernel_built", "kernel_status", "kernels_enabled", "load_kernel", "set_kernels_enabled"]
 
 _SOURCE_DIR = Path(__file__).resolve().parent / "csrc"
 _LOG = logging.getLogger(__name__)
+KERNEL_NAMES: tuple[str, ...] = tuple(sorted(path.stem for path in _SOURCE_DIR.glob("*.cpp")))
+"""Every kernel with a source in csrc/."""
 _LOCK = threading.Lock()
 _LOADED: dict[str, ModuleType | None] = {}
 _FAILURES: dict[str, str] = {}
@@ -53,6 +57,14 @@ def _cache_dir(name: str, source: bytes) -> Path:
     # One directory per torch build and source text: a stale library is never loaded.
     digest = hashlib.sha1(source + torch.__version__.encode()).hexdigest()[:12]
     return root / f"{name}-{digest}"
+
+
+def kernel_built(name: str) -> bool:
+    """Whether loading `name` is quick: already loaded here, or a compiled library is cached."""
+    if name in _LOADED:
+        return True
+    source = (_SOURCE_DIR / f"{name}.cpp").read_bytes()
+    return any(_cache_dir(name, source).glob("*.so"))
 
 
 def load_kernel(name: str) -> ModuleType | None:
