@@ -1,5 +1,6 @@
-// Fast-SNARF skinning on CPU: trilinear lookups in a channel-last voxel grid, forward LBS and the
-// per-start Broyden root finding, one start per loop iteration with everything in registers.
+// Fast-SNARF skinning on CPU: forward LBS through a channel-last voxel grid, each start's own
+// bone weight (start selection) and the per-start Broyden root finding, one start per loop
+// iteration with everything in registers.
 //
 // Reference (and the semantics every function here must keep): igavatar/skinning/grid.py
 // (`sample_grid`: grid_sample, trilinear, padding "border", align_corners=True) and
@@ -115,28 +116,6 @@ void check_points(const torch::Tensor& x, const char* name) {
 }
 
 }  // namespace
-
-// Trilinear lookup of every channel: (N, 3) -> (N, C).
-torch::Tensor sample(torch::Tensor grid, torch::Tensor box_min, torch::Tensor box_max, torch::Tensor x) {
-  const Grid g = make_grid(grid, box_min, box_max);
-  check_points(x, "x");
-  const int64_t n = x.size(0), channels = g.channels;
-  auto out = torch::empty({n, channels}, x.options());
-  const float* xp = x.data_ptr<float>();
-  float* op = out.data_ptr<float>();
-#pragma omp parallel for schedule(static)
-  for (int64_t p = 0; p < n; ++p) {
-    Corners c;
-    corners(g, xp + 3 * p, c);
-    float* o = op + p * channels;
-    for (int64_t ch = 0; ch < channels; ++ch) o[ch] = 0.0f;
-    for (int k = 0; k < 8; ++k) {
-      const float* v = g.data + c.offset[k];
-      for (int64_t ch = 0; ch < channels; ++ch) o[ch] += c.weight[k] * v[ch];
-    }
-  }
-  return out;
-}
 
 // Channel i of the grid at x[:, i]: (N, C, 3) -> (N, C) (each start's own bone weight).
 torch::Tensor sample_diagonal(torch::Tensor grid, torch::Tensor box_min, torch::Tensor box_max, torch::Tensor x) {
@@ -254,7 +233,6 @@ std::vector<torch::Tensor> broyden(torch::Tensor blended, torch::Tensor box_min,
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("sample", &sample, "trilinear lookup of a (D, H, W, C) grid at (N, 3) points -> (N, C)");
   m.def("sample_diagonal", &sample_diagonal, "channel i at x[:, i]: (N, C, 3) -> (N, C)");
   m.def("lbs", &lbs, "forward LBS through a (D, H, W, 12) blended transform grid");
   m.def("broyden", &broyden, "Broyden root finding of LBS(x) = x_target per start");
