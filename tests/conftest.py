@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -74,3 +75,33 @@ def tiny_model(small_run, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("model") / "model"
     run_train(TrainOptions(dataset=small_run / "dataset", out=out, preset="tiny", device="cpu"))
     return out
+
+
+def built_kernel(name: str):
+    """The compiled kernel `name`, built with the kernels forced on.
+
+    A machine without a C++ compiler cannot build it: the kernel tests are skipped there, saying
+    so. Anywhere else a failed build is a test failure (with the loader's reason), never a skip.
+    """
+    from igavatar import kernels
+
+    kernels.set_kernels_enabled(True)
+    try:
+        module = kernels.load_kernel(name)
+    finally:
+        kernels.set_kernels_enabled(None)
+    if module is not None:
+        return module
+    if not any(shutil.which(compiler) for compiler in ("c++", "g++", "clang++")):
+        pytest.skip(f"no C++ compiler on PATH: the {name!r} kernel cannot be built here")
+    pytest.fail(f"{name!r} kernel failed to build: {kernels.kernel_status().get(name)}")
+
+
+@pytest.fixture
+def kernels_on():
+    """Kernels forced on for one test (whatever IGAVATAR_KERNELS says), switch restored after."""
+    from igavatar import kernels
+
+    kernels.set_kernels_enabled(True)
+    yield
+    kernels.set_kernels_enabled(None)

@@ -10,6 +10,7 @@ import torch
 
 import igavatar.kernels as kernels
 from igavatar.model.hashgrid import HashGridConfig, HashGridEncoding
+from tests.conftest import built_kernel
 
 # 2 dense levels (5^3, 9^3 <= 2^10) and 4 hashed ones, up to 64 cells per axis.
 CONFIG = HashGridConfig(n_levels=6, log2_hashmap_size=10, base_resolution=4, finest_resolution=64)
@@ -19,21 +20,12 @@ BOX_MAX = torch.tensor([0.7, 1.1, 0.6])
 
 @pytest.fixture(scope="module")
 def kernel():
-    kernels.set_kernels_enabled(True)
-    try:
-        module = kernels.load_kernel("hashgrid")
-    finally:
-        kernels.set_kernels_enabled(None)
-    if module is None:
-        pytest.skip(f"hashgrid kernel unavailable: {kernels.kernel_status().get('hashgrid')}")
-    return module
+    return built_kernel("hashgrid")
 
 
 @pytest.fixture(autouse=True)
-def _kernels_on():
-    kernels.set_kernels_enabled(True)
+def _kernels_on(kernels_on):
     yield
-    kernels.set_kernels_enabled(None)
 
 
 def make_grid(config=CONFIG, seed=0):

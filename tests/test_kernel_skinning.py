@@ -10,24 +10,21 @@ from __future__ import annotations
 import pytest
 import torch
 
-from igavatar.kernels import kernel_status, load_kernel, set_kernels_enabled
+from igavatar.kernels import set_kernels_enabled
 from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, _broyden, _broyden_reference
 from igavatar.skinning.grid import apply_affine, blended_transform_grid, sample_blended_transforms, sample_grid
+from tests.conftest import built_kernel
 from tests.test_deformer import INIT_BONES, _bone_transforms, _canonical_points, _recovery, _stick_figure_grid
 
 
 @pytest.fixture(scope="module")
 def kernel():
-    module = load_kernel("skinning")
-    if module is None:
-        pytest.skip(f"skinning kernel not built: {kernel_status().get('skinning')}")
-    return module
+    return built_kernel("skinning")
 
 
 @pytest.fixture(autouse=True)
-def _restore_kernel_switch():
+def _kernels_on(kernels_on):
     yield
-    set_kernels_enabled(None)
 
 
 def _points_around_box(box_min, box_max, count, seed):

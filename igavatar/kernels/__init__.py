@@ -71,6 +71,8 @@ def load_kernel(name: str) -> ModuleType | None:
     """The compiled extension ``csrc/<name>.cpp``, building it on first use; None when disabled or unbuildable."""
     if not kernels_enabled():
         return None
+    if name in _LOADED:  # the hot path (every chunk, every root-finding call): no lock
+        return _LOADED[name]
     with _LOCK:
         if name in _LOADED:
             return _LOADED[name]
@@ -107,8 +109,7 @@ def _build(name: str) -> ModuleType:
 def kernel_status() -> dict[str, str]:
     """name -> "loaded" / "failed: why" / "disabled" for every kernel source (benchmarks print it)."""
     status = {}
-    for source in sorted(_SOURCE_DIR.glob("*.cpp")):
-        name = source.stem
+    for name in KERNEL_NAMES:
         if not kernels_enabled():
             status[name] = "disabled"
         elif name in _FAILURES:

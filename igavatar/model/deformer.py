@@ -396,7 +396,7 @@ class FastSnarfDeformer(nn.Module):
         key = (grid.data_ptr(), grid._version, grid.device, tuple(init_bones.tolist()))
         cached = getattr(self, "_weights_last_cache", None)
         if cached is None or cached[0] != key:
-            weights_last = self.weights_grid.detach().permute(1, 2, 3, 0).contiguous()
+            weights_last = grid.detach().permute(1, 2, 3, 0).contiguous()
             cached = (key, weights_last, weights_last[..., init_bones].contiguous())
             self._weights_last_cache = cached
         return cached[1], cached[2]

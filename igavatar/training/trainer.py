@@ -185,10 +185,8 @@ class Trainer:
             self.canonical_grid, self.avatar.deformer, frame, posed_box, config.occupancy_resolution
         )
 
-        n_patches = max(1, config.rays_per_step // config.patch_size**2)
-        self._patches_per_step = n_patches
         pixels = sample_patch_pixels(
-            data.mask_pixels(index), data.image_size, n_patches, config.patch_size,
+            data.mask_pixels(index), data.image_size, self._patches_per_step, config.patch_size,
             config.patch_centres_in_mask, self.generator,
         )
         target_rgb = data.images[index][pixels[:, 1], pixels[:, 0]].to(device, torch.float32) / 255.0

@@ -182,28 +182,22 @@ def training_profile(
 
 
 def hashgrid_micro(points: int, repeats: int) -> dict:
-    """Forward + Jacobian + backward of the cpu preset's hash grid alone, reference vs kernel."""
-    from igavatar.model.hashgrid import HashGridConfig, HashGridEncoding
+    """Median seconds of bench_hashgrid's step (forward + Jacobian + backward of the cpu preset's
+    grid), reference vs kernel, round-robin after two warm-up rounds."""
+    from bench_hashgrid import CONFIG, step
 
-    grid = HashGridEncoding(HashGridConfig(n_levels=12, log2_hashmap_size=17, base_resolution=16, finest_resolution=1024),
-                            torch.full((3,), -1.0), torch.ones(3))
+    from igavatar.model.hashgrid import HashGridEncoding
+
+    grid = HashGridEncoding(CONFIG, torch.full((3,), -1.0), torch.ones(3))
     torch.nn.init.uniform_(grid.table, -0.1, 0.1)
     x = (torch.rand(points, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1).requires_grad_(True)
-    out = {}
-    for name, enabled in (("reference", False), ("fast", True)):
-        set_kernels_enabled(enabled)
-        times = []
-        for r in range(repeats + 2):
-            started = time.perf_counter()
-            features, jacobian = grid.forward_with_jacobian(x)
-            (features.sum() + jacobian.square().sum()).backward()
+    times: dict[str, list[float]] = {"reference": [], "fast": []}
+    for r in range(repeats + 2):
+        for name, path in (("reference", "reference"), ("fast", "kernel")):
+            forward_s, backward_s = step(grid, x, path)
             if r >= 2:
-                times.append(time.perf_counter() - started)
-            grid.table.grad = None
-            x.grad = None
-        out[name] = statistics.median(times)
-    set_kernels_enabled(None)
-    return out
+                times[name].append(forward_s + backward_s)
+    return {name: statistics.median(t) for name, t in times.items()}
 
 
 def cli_timings(model: Path, work: Path) -> dict:
@@ -273,9 +267,10 @@ def main() -> None:
         results["training_mean_speedup"] = ref / fast
         print(f"\nwhole run (the two halves alike): {ref * 1e3:.1f} -> {fast * 1e3:.1f} ms per step, {ref / fast:.2f}x")
 
-        micro = hashgrid_micro(8192 if args.quick else 32768, 3 if args.quick else 10)
+        points = 8192 if args.quick else 32768
+        micro = hashgrid_micro(points, 3 if args.quick else 10)
         results["hashgrid_micro"] = micro
-        print("\n== hash grid alone: forward + Jacobian + backward, 32768 points, cpu preset grid (median) ==")
+        print(f"\n== hash grid alone: forward + Jacobian + backward, {points} points, cpu preset grid (median) ==")
         print(f"reference {micro['reference'] * 1e3:.1f} ms, fast {micro['fast'] * 1e3:.1f} ms, "
               f"{micro['reference'] / micro['fast']:.2f}x")
 
