@@ -21,6 +21,7 @@ from rich.console import Console
 from igavatar import __version__
 from igavatar.errors import IgavatarError, NotAvailableError
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
+from stages.resources import tune_host_allocator
 
 app = typer.Typer(
     no_args_is_help=True,
@@ -49,6 +50,8 @@ def _main(
     ] = None,
 ) -> None:
     """igavatar: hash-grid SDF avatars from monocular video, in minutes, on CPU or GPU."""
+    # Every command that trains or renders allocates large short-lived tensors; see the docstring.
+    tune_host_allocator()
 
 
 def user_errors(func: Callable) -> Callable:

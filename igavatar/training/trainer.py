@@ -43,6 +43,7 @@ from igavatar.render.sampler import RaySamples, sample_along_rays
 from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
+from igavatar.training.optim import adam
 
 #: Prepared frames kept in memory (each is a (12, D, H, W) blended-transform grid).
 PREPARED_CACHE = 512
@@ -76,7 +77,7 @@ class Trainer:
         beta = [p for n, p in avatar.named_parameters() if n.startswith("density.")]
         networks = [p for n, p in avatar.named_parameters() if not n.startswith(("sdf_field.encoding.", "density."))]
         self._base_lrs = [config.lr, config.lr * config.network_lr_factor, config.lr * config.beta_lr_factor]
-        self.optimizer = torch.optim.Adam(
+        self.optimizer = adam(
             [{"params": group, "lr": lr} for group, lr in zip((table, networks, beta), self._base_lrs)],
             betas=(0.9, 0.99), eps=config.adam_eps,
         )
@@ -278,7 +279,12 @@ class Trainer:
 
     def load_state_dict(self, state: dict) -> None:
         self.avatar.load_state_dict(state["avatar"])
+        # A saved optimizer carries its implementation flags (fused/foreach) in its groups; keep
+        # this process's choice, so a run resumed with IGAVATAR_KERNELS=0 stays on the reference.
+        flags = [{key: group.get(key) for key in ("fused", "foreach")} for group in self.optimizer.param_groups]
         self.optimizer.load_state_dict(state["optimizer"])
+        for group, saved in zip(self.optimizer.param_groups, flags):
+            group.update(saved)
         self.canonical_grid.load_state_dict(state["canonical_grid"])
         self.generator.set_state(state["generator"].to(torch.uint8))
         self.step = int(state["step"])

@@ -16,7 +16,7 @@ charged exclusively (a call nested in another counts for its own component only)
     renderer         posed occupancy, sampling, compositing
     losses           the loss terms
     backward         one backward pass through everything above
-    optimiser        Adam
+    optimiser        Adam (torch's fused kernel on the fast path, its per-tensor loop in the reference)
     occupancy        the canonical occupancy grid's periodic update (its field queries excluded)
     other            the rest of the step (ray generation, batching, bookkeeping)
 
@@ -54,7 +54,7 @@ from igavatar.kernels import kernel_status, load_kernel, set_kernels_enabled  # 
 from igavatar.training.checkpoint import load_state  # noqa: E402
 from igavatar.training.config import preset, with_overrides  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
-from stages.resources import peak_ram_bytes  # noqa: E402
+from stages.resources import peak_ram_bytes, tune_host_allocator  # noqa: E402
 from stages.train import build_avatar, load_training_data  # noqa: E402
 
 COMPONENTS = ("root finding", "hash grid", "MLPs", "renderer", "losses", "backward", "optimiser", "occupancy", "other")
@@ -249,11 +249,15 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = parser.parse_args()
     warmup, measured = (2, 4) if args.quick else (8, 30)
+    # As the CLI does, for both trainers alike (the reference is the plain PyTorch *code* path).
+    allocator = tune_host_allocator()
 
     status = {name: ("loaded" if load_kernel(name) is not None else kernel_status()[name]) for name in kernel_status()}
     dataset = ensure_dataset(args.run_dir)
-    results: dict = {"machine": {"threads": torch.get_num_threads(), "torch": torch.__version__}, "kernels": status}
-    print(f"kernels: {status}; {torch.get_num_threads()} threads, torch {torch.__version__}")
+    results: dict = {"machine": {"threads": torch.get_num_threads(), "torch": torch.__version__}, "kernels": status,
+                     "host_allocator": allocator}
+    print(f"kernels: {status}; {torch.get_num_threads()} threads, torch {torch.__version__}; "
+          f"host allocator settings: {allocator or 'default'}")
 
     results["training"] = {}
     phases = () if args.skip_training else (("rigid (first half)", 0.0), ("non-rigid on (second half)", 0.8))
