@@ -2,6 +2,7 @@
 
     python tests/benchmarks/bench_speed.py                       # training step profile, ~5 min on 2 cores
     python tests/benchmarks/bench_speed.py --model igavatar-run/model   # + export 512^3 and animate
+    python tests/benchmarks/bench_speed.py --train               # + `igavatar train` end to end, ~12 min
     python tests/benchmarks/bench_speed.py --quick               # a smoke run
 
 Table 1 is the `cpu` preset's training step on the default synthetic subject, built twice from
@@ -20,6 +21,9 @@ charged exclusively (a call nested in another counts for its own component only)
     occupancy        the canonical occupancy grid's periodic update (its field queries excluded)
     other            the rest of the step (ray generation, batching, bookkeeping)
 
+With ``--train``, `igavatar train --preset cpu` runs end to end in two processes, kernels off
+then on: the figure to quote for the whole run (steps, shape fit, stage wall time).
+
 Table 2 (with ``--model``) runs `igavatar export` (512^3 marching cubes) and `igavatar animate`
 on a trained model in separate processes with the kernels off and on. Table 3 is the hash-grid
 kernel alone (forward + Jacobian + backward). Numbers are measured, never asserted.
@@ -33,6 +37,7 @@ import dataclasses
 import functools
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -212,6 +217,39 @@ def cli_timings(model: Path, work: Path) -> dict:
     return rows
 
 
+def train_timings(dataset: Path, work: Path, steps: int | None) -> dict:
+    """`igavatar train --preset cpu` with the kernels off, then on, in separate processes; the
+    stage's own timings (shape fit, training steps, final validation) and its wall time."""
+    rows = {}
+    for name, flag in (("reference", "0"), ("fast", "1")):
+        env = dict(os.environ, IGAVATAR_KERNELS=flag)
+        out = work / f"train-{name}"
+        # From scratch: a model left here would hand its cached shape initialisation to this run.
+        shutil.rmtree(out, ignore_errors=True)
+        args = ["train", "--dataset", str(dataset), "--out", str(out), "--preset", "cpu", "--device", "cpu", "--quiet"]
+        if steps is not None:
+            args += ["--steps", str(steps)]
+        summary = _cli(args, env)
+        manifest = read_artifact(out, expected="model")
+        summary["timings"] = manifest["timings"] if "timings" in manifest else manifest["data"].get("timings")
+        rows[name] = summary
+    return rows
+
+
+def print_train_timings(rows: dict) -> None:
+    ref, fast = rows["reference"], rows["fast"]
+    print(f"\n== igavatar train --preset cpu ({ref['steps']} steps), separate processes, kernels off then on ==")
+    print(f"{'':<30} {'reference':>10} {'fast':>8} {'speed-up':>9}")
+    lines = [("training steps, s", ref["train_seconds"], fast["train_seconds"])]
+    if ref.get("timings") and fast.get("timings"):
+        lines += [("shape initialisation, s", ref["timings"]["shape_init_s"], fast["timings"]["shape_init_s"]),
+                  ("whole stage (its own timer), s", ref["timings"]["total_s"], fast["timings"]["total_s"])]
+    lines.append(("process wall time, s", ref["wall_s"], fast["wall_s"]))
+    for label, r, f in lines:
+        print(f"{label:<30} {r:>10.1f} {f:>8.1f} {r / f if f > 0 else float('nan'):>8.2f}x")
+    print(f"it/s {ref['it_per_s']:.2f} -> {fast['it_per_s']:.2f}; validation PSNR {ref['validation_psnr']} vs {fast['validation_psnr']}")
+
+
 def _cli(args: list[str], env: dict) -> dict:
     started = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "igavatar_cli.main", *args, "--json"], cwd=ROOT, env=env,
@@ -244,6 +282,8 @@ def main() -> None:
     parser.add_argument("--from-model", type=Path, default=None,
                         help="start the profiled steps from this trained model's weights (realistic sample counts)")
     parser.add_argument("--skip-training", action="store_true", help="only the export/animate table (needs --model)")
+    parser.add_argument("--train", action="store_true",
+                        help="also run `igavatar train --preset cpu` end to end, kernels off then on (~12 min on 2 cores)")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
@@ -277,6 +317,11 @@ def main() -> None:
         print(f"\n== hash grid alone: forward + Jacobian + backward, {points} points, cpu preset grid (median) ==")
         print(f"reference {micro['reference'] * 1e3:.1f} ms, fast {micro['fast'] * 1e3:.1f} ms, "
               f"{micro['reference'] / micro['fast']:.2f}x")
+
+    if args.train:
+        rows = train_timings(dataset, args.run_dir / "speed", 100 if args.quick else None)
+        results["train_end_to_end"] = rows
+        print_train_timings(rows)
 
     if args.model is not None:
         timings = cli_timings(args.model, args.run_dir / "speed")
