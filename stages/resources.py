@@ -27,11 +27,11 @@ def peak_cuda_bytes() -> int | None:
     return int(torch.cuda.max_memory_allocated())
 
 
-#: glibc mallopt parameter numbers (malloc.h).
-_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
-#: What `tune_host_allocator` sets: tensors up to 32 MiB (glibc's largest allowed threshold) come
-#: from the heap, and freed heap memory is kept (up to 1 GiB) and grown in 64 MiB steps.
-ALLOCATOR_SETTINGS = {"mmap_threshold": 32 << 20, "trim_threshold": 1 << 30, "top_pad": 64 << 20}
+#: What `tune_host_allocator` sets, with glibc's mallopt parameter numbers (malloc.h): tensors up
+#: to 32 MiB (glibc's largest allowed threshold) come from the heap, and freed heap memory is kept
+#: (up to 1 GiB) and grown in 64 MiB steps.
+_MALLOPT = {"mmap_threshold": (-3, 32 << 20), "trim_threshold": (-1, 1 << 30), "top_pad": (-2, 64 << 20)}
+ALLOCATOR_SETTINGS = {name: value for name, (_, value) in _MALLOPT.items()}
 _ALLOCATOR_ENV = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "GLIBC_TUNABLES")
 
 
@@ -58,9 +58,6 @@ def tune_host_allocator() -> dict[str, int] | None:
         return None
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    settings = ALLOCATOR_SETTINGS
-    applied = {}
-    for name, parameter in (("mmap_threshold", _M_MMAP_THRESHOLD), ("trim_threshold", _M_TRIM_THRESHOLD), ("top_pad", _M_TOP_PAD)):
-        if mallopt(parameter, settings[name]) == 1:  # 1: accepted
-            applied[name] = settings[name]
+    # mallopt returns 1 when it accepts a setting.
+    applied = {name: value for name, (parameter, value) in _MALLOPT.items() if mallopt(parameter, value) == 1}
     return applied or None

@@ -18,14 +18,13 @@ BOX_MIN = torch.tensor([-0.9, -1.2, -0.4])
 BOX_MAX = torch.tensor([0.7, 1.1, 0.6])
 
 
+# Every test here runs with the kernels forced on (whatever IGAVATAR_KERNELS says).
+pytestmark = pytest.mark.usefixtures("kernels_on")
+
+
 @pytest.fixture(scope="module")
 def kernel():
     return built_kernel("hashgrid")
-
-
-@pytest.fixture(autouse=True)
-def _kernels_on(kernels_on):
-    yield
 
 
 def make_grid(config=CONFIG, seed=0):

@@ -17,14 +17,13 @@ from tests.conftest import built_kernel
 from tests.test_deformer import INIT_BONES, _bone_transforms, _canonical_points, _recovery, _stick_figure_grid
 
 
+# Every test here runs with the kernels forced on (whatever IGAVATAR_KERNELS says).
+pytestmark = pytest.mark.usefixtures("kernels_on")
+
+
 @pytest.fixture(scope="module")
 def kernel():
     return built_kernel("skinning")
-
-
-@pytest.fixture(autouse=True)
-def _kernels_on(kernels_on):
-    yield
 
 
 def _points_around_box(box_min, box_max, count, seed):
