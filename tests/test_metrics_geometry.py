@@ -17,6 +17,7 @@ from igavatar.metrics.geometry import (
     chamfer_l2_vertices_cm2,
     closest_point_on_triangles,
     closest_points_on_mesh,
+    closest_points_on_mesh_reference,
     evaluate_meshes,
     keep_largest_component,
     normal_consistency_vertices,
@@ -154,14 +155,15 @@ def test_closest_point_on_degenerate_triangle_uses_edges():
     np.testing.assert_allclose(closest_point_on_triangles(p, a, b, c), [[1.5, 0, 0]], atol=1e-12)
 
 
-def test_closest_points_on_mesh_matches_bruteforce():
+@pytest.mark.parametrize("closest_points", [closest_points_on_mesh, closest_points_on_mesh_reference])
+def test_closest_points_on_mesh_matches_bruteforce(closest_points):
     rng = np.random.default_rng(2)
     vertices, faces = random_mesh(rng, 60, 120, scale=0.5)
     # A huge triangle exercises the "big faces" path; points far away exercise large search balls.
     vertices = np.vstack([vertices, [[-5, -5, 0.2], [5, -5, 0.2], [0, 6, 0.2]]])
     faces = np.vstack([faces, [[60, 61, 62]]])
     points = np.vstack([rng.normal(size=(150, 3)) * 0.6, rng.normal(size=(30, 3)) * 4.0])
-    _, distance, face_index = closest_points_on_mesh(points, vertices, faces, max_pairs=500)
+    _, distance, face_index = closest_points(points, vertices, faces, max_pairs=500)
     brute = np.array([
         [point_triangle_distance_reference(p, *vertices[f]) for f in faces] for p in points
     ])

@@ -206,14 +206,16 @@ def hashgrid_micro(points: int, repeats: int) -> dict:
 
 
 def cli_timings(model: Path, work: Path) -> dict:
-    """export (512^3) and animate (2 s walk, 256 px) with the kernels off and on, separate processes."""
+    """export (512^3), animate (2 s walk, 256 px) and eval (every test frame against its scan, the
+    model's own dataset) with the kernels off and on, separate processes."""
     rows = {}
     for name, flag in (("reference", "0"), ("fast", "1")):
         env = dict(os.environ, IGAVATAR_KERNELS=flag)
         export = _cli(["export", "--model", str(model), "--out", str(work / f"mesh-{name}"), "--resolution", "512",
                        "--device", "cpu", "--force"], env)
         animate = _cli(["animate", "--model", str(model), "--out", str(work / f"animation-{name}"), "--device", "cpu"], env)
-        rows[name] = {"export": export, "animate": animate}
+        evaluation = _cli(["eval", "--model", str(model), "--out", str(work / f"report-{name}"), "--device", "cpu"], env)
+        rows[name] = {"export": export, "animate": animate, "eval": evaluation}
     return rows
 
 
@@ -278,10 +280,10 @@ def print_profile(phase: str, profile: dict, warmup: int, measured: int) -> None
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, default=Path("igavatar-bench"))
-    parser.add_argument("--model", type=Path, default=None, help="trained model: also time export and animate")
+    parser.add_argument("--model", type=Path, default=None, help="trained model: also time export, animate and eval")
     parser.add_argument("--from-model", type=Path, default=None,
                         help="start the profiled steps from this trained model's weights (realistic sample counts)")
-    parser.add_argument("--skip-training", action="store_true", help="only the export/animate table (needs --model)")
+    parser.add_argument("--skip-training", action="store_true", help="only the export/animate/eval table (needs --model)")
     parser.add_argument("--train", action="store_true",
                         help="also run `igavatar train --preset cpu` end to end, kernels off then on (~12 min on 2 cores)")
     parser.add_argument("--quick", action="store_true")
@@ -326,9 +328,9 @@ def main() -> None:
     if args.model is not None:
         timings = cli_timings(args.model, args.run_dir / "speed")
         results["stages"] = timings
-        print("\n== export (512^3) and animate (60 frames, 256 px), separate processes ==")
+        print("\n== export (512^3), animate (60 frames, 256 px) and eval (test frames), separate processes ==")
         print(f"{'stage':<10} {'reference s':>12} {'fast s':>8} {'speed-up':>9}")
-        for stage in ("export", "animate"):
+        for stage in ("export", "animate", "eval"):
             r, f = timings["reference"][stage]["wall_s"], timings["fast"][stage]["wall_s"]
             print(f"{stage:<10} {r:>12.1f} {f:>8.1f} {r / f:>8.2f}x")
         r, f = (timings[name]["animate"]["frames_per_s"] for name in ("reference", "fast"))
