@@ -20,7 +20,9 @@ def _enabled_module(**overrides) -> NonRigidOffset:
 def test_disabled_returns_zeros_without_running_the_mlp():
     module = NonRigidOffset(NonRigidConfig(pose_dim=5))
     calls = []
-    module.output.register_forward_hook(lambda *args: calls.append(1))
+    encode = module.encode
+    # Both paths (shared-pose fast path, reference) start by encoding the points.
+    module.encode = lambda *args, **kwargs: calls.append(1) or encode(*args, **kwargs)
     offsets = module(torch.rand(7, 3), torch.rand(5))
     assert torch.equal(offsets, torch.zeros(7, 3)) and calls == []
     module.set_enabled(True)

@@ -24,6 +24,7 @@ from torch.nn import functional as F
 
 from igavatar.errors import InputError
 from igavatar.model.hashgrid import HashGridConfig, HashGridEncoding
+from igavatar.model.linear import linear, pad_rows
 
 
 _SOFTPLUS_THRESHOLD = 20.0  # F.softplus's default: identity where beta * z > 20
@@ -281,7 +282,12 @@ class ColorField(nn.Module):
                 f"ColorField: expected feature (P, {self.config.feature_dim}) and normal_canonical (P, 3), "
                 f"got {tuple(feature.shape)} and {tuple(normal_canonical.shape)}"
             )
-        return torch.sigmoid(self.mlp(torch.cat((feature, normal_canonical), dim=-1)))
+        # The same network as self.mlp (Linear, ReLU, ..., Linear), on rows padded to a cached
+        # matrix shape when the fast path applies (see linear.pad_rows), sliced at the output.
+        h = pad_rows(torch.cat((feature, normal_canonical), dim=-1))
+        for layer in self.mlp[:-1:2]:
+            h = linear(h, layer.weight, layer.bias, relu=True)
+        return torch.sigmoid(linear(h, self.mlp[-1].weight, self.mlp[-1].bias)[: feature.shape[0]])
 
 
 @dataclass(frozen=True)

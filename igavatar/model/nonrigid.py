@@ -18,10 +18,10 @@ from typing import Any
 
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from igavatar.errors import InputError
 from igavatar.kernels import kernels_enabled
+from igavatar.model.linear import linear, pad_rows
 
 __all__ = ["NonRigidConfig", "NonRigidOffset", "hann_window"]
 
@@ -161,8 +161,12 @@ class NonRigidOffset(nn.Module):
         n_encoded = encoded.shape[1]
         weight = first.weight.to(x_canonical.dtype)
         bias = first.bias.to(x_canonical.dtype) + weight[:, n_encoded:] @ pose.to(x_canonical.dtype)
-        h = self.hidden[1:](F.linear(encoded, weight[:, :n_encoded], bias))
-        return self.config.max_offset * torch.tanh(self.output(h))
+        # Rows padded to a cached matrix shape (see linear.pad_rows), sliced off at the output.
+        h = linear(pad_rows(encoded), weight[:, :n_encoded], bias, relu=True)
+        for layer in self.hidden[2::2]:  # the Linear modules after the first (ReLU between them)
+            h = linear(h, layer.weight, layer.bias, relu=True)
+        out = linear(h, self.output.weight, self.output.bias)[: x_canonical.shape[0]]
+        return self.config.max_offset * torch.tanh(out)
 
     def _forward_reference(self, x_canonical: torch.Tensor, pose: torch.Tensor, alpha: float | None) -> torch.Tensor:
         """The network as written: [encoding, pose] concatenated per point through the MLP."""
