@@ -45,7 +45,9 @@ def test_fast_linear_equals_f_linear_in_value_and_gradients(rows, d_in, d_out, w
     if relu:
         assert (fast[0] == 0).any() and (fast[0] > 0).any()  # the mask matters
     for got, want in zip(fast, reference):
-        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+        # Float32 tolerance at the tensor's own scale: the weight gradient sums `rows` products
+        # in another order than mm does.
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5 * float(want.detach().abs().max()))
 
 
 def test_reference_is_used_when_kernels_are_off_or_inputs_do_not_apply():

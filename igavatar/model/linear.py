@@ -11,8 +11,9 @@ the results agree to float32 rounding (tests/test_linear.py), and the ReLU is fu
 product's output pass.
 
 The fast path runs the forward product and the input gradient on oneDNN (``torch.ops.mkldnn.
-_linear_pointwise``, the op torch's own compiler emits for CPU linear layers) and keeps the weight
-gradient on ``mm``: for that long reduction (K = points) oneDNN is no faster. It is used when
+_linear_pointwise``, the op torch's own compiler emits for CPU linear layers) and the weight and
+bias gradients on oneDNN's inner-product backward (``aten::mkldnn_linear_backward_weights``, the
+backward of torch's ``mkldnn_linear``). It is used when
 `kernels_enabled()`, for 2-D float32 CPU inputs, and when this torch build has the op; otherwise,
 and always with ``IGAVATAR_KERNELS=0``, the layer is plain `F.linear` (+ `relu`). The fast path is
 differentiable once (like every first-order training loss here); a double backward raises.
@@ -47,6 +48,17 @@ def _onednn_product(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | 
     return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "relu" if relu else "none", [], "")
 
 
+def _onednn_weight_gradients(
+    grad: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, with_bias: bool
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """grad (P, out)^T x (P, in) and grad summed over rows, by oneDNN's inner-product backward
+    (its long reduction over P is ~1.2-1.6x faster than `mm` here); dense (out, in), (out,) or None."""
+    grad_weight, grad_bias = torch.ops.aten.mkldnn_linear_backward_weights(
+        grad.to_mkldnn(), x.to_mkldnn(), weight, with_bias
+    )
+    return grad_weight, grad_bias if with_bias else None
+
+
 def onednn_linear_available() -> bool:
     """Whether this torch build runs oneDNN's linear op correctly (checked once on a tiny product)."""
     global _AVAILABLE
@@ -59,8 +71,13 @@ def onednn_linear_available() -> bool:
                 x = torch.randn(5, 7, generator=generator)
                 weight = torch.randn(3, 7, generator=generator)
                 bias = torch.randn(3, generator=generator)
-                ok = torch.backends.mkldnn.is_available() and torch.allclose(
-                    _onednn_product(x, weight, bias, True), linear_reference(x, weight, bias, True), atol=1e-5
+                grad = torch.randn(5, 3, generator=generator)
+                grad_weight, grad_bias = _onednn_weight_gradients(grad, x, weight, True)
+                ok = (
+                    torch.backends.mkldnn.is_available()
+                    and torch.allclose(_onednn_product(x, weight, bias, True), linear_reference(x, weight, bias, True), atol=1e-5)
+                    and torch.allclose(grad_weight, grad.t() @ x, atol=1e-5)
+                    and torch.allclose(grad_bias, grad.sum(0), atol=1e-5)
                 )
                 reason = "its result differs from F.linear"
             except Exception as error:  # noqa: BLE001 - any failure means "use F.linear"
@@ -96,10 +113,10 @@ class _OneDnnLinear(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_x = _onednn_product(grad, weight.t().contiguous(), None, False)
         if ctx.needs_input_grad[1]:
-            grad_weight = grad.t().mm(x)
-        if ctx.has_bias and ctx.needs_input_grad[2]:
+            grad_weight, grad_bias = _onednn_weight_gradients(grad, x, weight, ctx.has_bias)
+        elif ctx.has_bias and ctx.needs_input_grad[2]:
             grad_bias = grad.sum(0)
-        return grad_x, grad_weight, grad_bias, None
+        return grad_x, grad_weight, grad_bias if ctx.needs_input_grad[2] else None, None
 
 
 def _fast_path_applies(x: torch.Tensor) -> bool:
