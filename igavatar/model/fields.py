@@ -25,6 +25,7 @@ from torch.nn import functional as F
 from igavatar.errors import InputError
 from igavatar.model.hashgrid import HashGridConfig, HashGridEncoding
 from igavatar.model.linear import linear, pad_rows
+from igavatar.model.sdf_head import sdf_head_applies, sdf_head_with_gradient
 
 
 _SOFTPLUS_THRESHOLD = 20.0  # F.softplus's default: identity where beta * z > 20
@@ -210,6 +211,14 @@ class SDFField(nn.Module):
         encoded, jacobian = self._encode_with_jacobian(x_canonical)  # (P, C), (P, C, 3); C = 0 without a grid
         h = self._mlp_input(x_canonical, encoded)
         beta = self.config.softplus_beta
+        if self.config.pe_frequencies == 0 and sdf_head_applies(h, self.layers):
+            # Fast path (one hidden layer): the same function fused into one autograd node.
+            scale = self.input_scale.to(h.dtype)
+            grad_scale = torch.cat((scale.reciprocal().expand(3), self._feature_scale(h.dtype)))
+            feature, grad_sdf = sdf_head_with_gradient(
+                h, jacobian, grad_scale, self.layers[0], self.layers[-1], beta, _SOFTPLUS_THRESHOLD
+            )
+            return feature[:, 0], feature, grad_sdf
         slopes = []
         for layer in self.layers[:-1]:
             z = layer(h)

@@ -30,7 +30,10 @@ from torch.autograd.function import once_differentiable
 
 from igavatar.kernels import kernels_enabled
 
-__all__ = ["linear", "linear_reference", "onednn_linear_available", "pad_rows", "padded_rows"]
+__all__ = [
+    "linear", "linear_reference", "onednn_linear_available", "onednn_product", "onednn_weight_gradients",
+    "pad_rows", "padded_rows",
+]
 
 _LOG = logging.getLogger(__name__)
 _LOCK = threading.Lock()
@@ -43,12 +46,12 @@ def linear_reference(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     return torch.relu(y) if relu else y
 
 
-def _onednn_product(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> torch.Tensor:
+def onednn_product(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> torch.Tensor:
     """x (P, in) @ weight (out, in)^T + bias (out,), ReLU fused when `relu`; contiguous float32."""
     return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "relu" if relu else "none", [], "")
 
 
-def _onednn_weight_gradients(
+def onednn_weight_gradients(
     grad: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, with_bias: bool
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """grad (P, out)^T x (P, in) and grad summed over rows, by oneDNN's inner-product backward
@@ -72,10 +75,10 @@ def onednn_linear_available() -> bool:
                 weight = torch.randn(3, 7, generator=generator)
                 bias = torch.randn(3, generator=generator)
                 grad = torch.randn(5, 3, generator=generator)
-                grad_weight, grad_bias = _onednn_weight_gradients(grad, x, weight, True)
+                grad_weight, grad_bias = onednn_weight_gradients(grad, x, weight, True)
                 ok = (
                     torch.backends.mkldnn.is_available()
-                    and torch.allclose(_onednn_product(x, weight, bias, True), linear_reference(x, weight, bias, True), atol=1e-5)
+                    and torch.allclose(onednn_product(x, weight, bias, True), linear_reference(x, weight, bias, True), atol=1e-5)
                     and torch.allclose(grad_weight, grad.t() @ x, atol=1e-5)
                     and torch.allclose(grad_bias, grad.sum(0), atol=1e-5)
                 )
@@ -95,7 +98,7 @@ class _OneDnnLinear(torch.autograd.Function):
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> torch.Tensor:
         x = x.contiguous()
         weight = weight.contiguous()
-        y = _onednn_product(x, weight, None if bias is None else bias.contiguous(), relu)
+        y = onednn_product(x, weight, None if bias is None else bias.contiguous(), relu)
         # The ReLU's mask is read back from its output, as torch's own relu backward does.
         ctx.save_for_backward(x, weight, y if relu else None)
         ctx.relu = relu
@@ -111,9 +114,9 @@ class _OneDnnLinear(torch.autograd.Function):
             grad = torch.ops.aten.threshold_backward(grad, y, 0)
         grad_x = grad_weight = grad_bias = None
         if ctx.needs_input_grad[0]:
-            grad_x = _onednn_product(grad, weight.t().contiguous(), None, False)
+            grad_x = onednn_product(grad, weight.t().contiguous(), None, False)
         if ctx.needs_input_grad[1]:
-            grad_weight, grad_bias = _onednn_weight_gradients(grad, x, weight, ctx.has_bias)
+            grad_weight, grad_bias = onednn_weight_gradients(grad, x, weight, ctx.has_bias)
         elif ctx.has_bias and ctx.needs_input_grad[2]:
             grad_bias = grad.sum(0)
         return grad_x, grad_weight, grad_bias if ctx.needs_input_grad[2] else None, None
