@@ -25,7 +25,7 @@ from torch.nn import functional as F
 from igavatar.errors import InputError
 from igavatar.model.hashgrid import HashGridConfig, HashGridEncoding
 from igavatar.model.linear import linear, pad_rows
-from igavatar.model.sdf_head import sdf_head_applies, sdf_head_with_gradient
+from igavatar.model.sdf_head import sdf_head_applies, sdf_head_forward, sdf_head_with_gradient
 
 
 _SOFTPLUS_THRESHOLD = 20.0  # F.softplus's default: identity where beta * z > 20
@@ -197,6 +197,10 @@ class SDFField(nn.Module):
         """``x_canonical (P, 3)`` -> ``(sdf (P,), feature (P, feature_dim))``, ``sdf = feature[:, 0]``."""
         h = self._mlp_input(x_canonical, self._encode(x_canonical))
         beta = self.config.softplus_beta
+        if not torch.is_grad_enabled() and self.config.pe_frequencies == 0 and sdf_head_applies(h, self.layers):
+            # Fast path for queries without gradients (root-finding scores, occupancy, meshing).
+            feature = sdf_head_forward(h, self.layers[0], self.layers[-1], beta, _SOFTPLUS_THRESHOLD)
+            return feature[:, 0], feature
         for layer in self.layers[:-1]:
             h = F.softplus(layer(h), beta=beta, threshold=_SOFTPLUS_THRESHOLD)
         feature = self.layers[-1](h)

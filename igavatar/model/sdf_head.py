@@ -31,7 +31,7 @@ from torch.autograd.function import once_differentiable
 from igavatar.kernels import kernels_enabled, load_kernel
 from igavatar.model.linear import onednn_linear_available, onednn_product, onednn_weight_gradients, padded_rows
 
-__all__ = ["sdf_head_applies", "sdf_head_with_gradient"]
+__all__ = ["sdf_head_applies", "sdf_head_forward", "sdf_head_with_gradient"]
 
 
 def _numpy(tensor: torch.Tensor):
@@ -147,3 +147,23 @@ def sdf_head_with_gradient(
     return _SDFHead.apply(
         mlp_input, jacobian, first.weight, first.bias, last.weight, last.bias, grad_scale, float(beta), float(threshold)
     )
+
+
+@torch.no_grad()
+def sdf_head_forward(
+    mlp_input: torch.Tensor, first: nn.Linear, last: nn.Linear, beta: float, threshold: float
+) -> torch.Tensor:
+    """feature (P, F) = W2 softplus_beta(W1 mlp_input + b1) + b2, without gradients (queries, meshing).
+
+    The same products on oneDNN and the Softplus in one kernel pass; call only where
+    :func:`sdf_head_applies` holds and no gradient is wanted.
+    """
+    points = mlp_input.shape[0]
+    rows = padded_rows(points)
+    x = mlp_input.contiguous()
+    if rows > points:
+        x = torch.cat((x, x.new_zeros((rows - points, x.shape[1]))))
+    z = onednn_product(x, first.weight.contiguous(), first.bias.contiguous(), False)
+    a = torch.empty_like(z)
+    load_kernel("sdfhead").softplus(_numpy(z), float(beta), float(threshold), _numpy(a))
+    return onednn_product(a, last.weight.contiguous(), last.bias.contiguous(), False)[:points]

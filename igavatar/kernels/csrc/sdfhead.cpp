@@ -3,6 +3,7 @@
 // passes between them run here, each one sweep over memory instead of a dozen torch ops.
 //
 //   activation_forward:  a = softplus_beta(z), u = slope(z) * w0          (R, H) each
+//   softplus:            a alone (no gradient wanted)
 //   activation_backward: grad_z = grad_a * s + grad_u * w0 * s'(z);  grad_w0 = sum_rows grad_u * s
 //   gradient_forward:    grad_sdf = gin[:, :3] * k[:3] + sum_c gin[:, 3 + c] k[3 + c] J[:, c, :]
 //   gradient_backward:   grad_gin[:, d] = k[d] * (d < 3 ? g[:, d] : J[:, d - 3, :] . g),
@@ -126,6 +127,23 @@ IGA_CLONES void activation_forward_rows(const float* z, const float* w0, float b
   }
 }
 
+// Rows [r0, r1) of a = softplus(z) alone (the SDF without its gradient: queries, meshing).
+IGA_CLONES void softplus_rows(const float* z, float beta, float threshold, float* a, int64_t r0, int64_t r1,
+                              int64_t H) {
+  const float inv_beta = 1.0f / beta;
+  for (int64_t r = r0; r < r1; ++r) {
+    const int64_t base = r * H;
+#pragma omp simd
+    for (int64_t h = 0; h < H; ++h) {
+      const float zn = z[base + h];
+      const float bz = beta * zn;
+      const float e = exp_nonpositive(-__builtin_fabsf(bz));
+      const float soft = ((bz > 0.0f ? bz : 0.0f) + log1p_unit(e)) * inv_beta;
+      a[base + h] = bz > threshold ? zn : soft;
+    }
+  }
+}
+
 // Rows [r0, r1) of grad_z = grad_a * s + grad_u * w0 * s'; gw0 (H,) accumulates grad_u * s.
 IGA_CLONES void activation_backward_rows(const float* z, const float* ga, const float* gu, const float* w0,
                                          float beta, float threshold, float* gz, float* gw0, int64_t r0,
@@ -173,6 +191,16 @@ void activation_forward(const Floats& z, const Floats& w0, float beta, float thr
   parallel_rows(R, [&](int64_t r0, int64_t r1, int64_t, int64_t) {
     activation_forward_rows(zp, wp, beta, threshold, ap, up, r0, r1, H);
   });
+}
+
+void softplus(const Floats& z, float beta, float threshold, const py::buffer& a) {
+  const int64_t R = z.ndim() == 2 ? z.shape(0) : -1, H = z.ndim() == 2 ? z.shape(1) : -1;
+  if (R < 0) throw std::invalid_argument("sdfhead: z must be (R, H)");
+  if (!(beta > 0.0f)) throw std::invalid_argument("sdfhead: beta must be > 0");
+  const float* zp = input(z, {R, H}, "z");
+  float* ap = output(a, {R, H}, "a");
+  py::gil_scoped_release release;
+  parallel_rows(R, [&](int64_t r0, int64_t r1, int64_t, int64_t) { softplus_rows(zp, beta, threshold, ap, r0, r1, H); });
 }
 
 void activation_backward(const Floats& z, const Floats& grad_a, const Floats& grad_u, const Floats& w0, float beta,
@@ -269,6 +297,8 @@ void gradient_backward(const Floats& grad_out, const Floats& gin, const Floats& 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("activation_forward", &activation_forward, "a = softplus(z), u = slope(z) * w0 (in place)", py::arg("z"),
         py::arg("w0"), py::arg("beta"), py::arg("threshold"), py::arg("a"), py::arg("u"));
+  m.def("softplus", &softplus, "a = softplus(z) (in place)", py::arg("z"), py::arg("beta"), py::arg("threshold"),
+        py::arg("a"));
   m.def("activation_backward", &activation_backward, "grad_z and grad_w0 of activation_forward (in place)",
         py::arg("z"), py::arg("grad_a"), py::arg("grad_u"), py::arg("w0"), py::arg("beta"), py::arg("threshold"),
         py::arg("grad_z"), py::arg("grad_w0"));
