@@ -16,6 +16,7 @@ import torch.nn.functional as F
 
 import igavatar.model.fields as fields
 from igavatar import kernels
+from igavatar.model import sdf_head
 from igavatar.model.fields import SDFField, SDFFieldConfig
 from igavatar.model.linear import onednn_linear_available
 
@@ -190,3 +191,30 @@ def test_softplus_kernel_matches_torch():
     a = torch.empty_like(z)
     kernel.softplus(z.numpy(), 100.0, 20.0, a.numpy())
     torch.testing.assert_close(a.double(), F.softplus(z.double(), beta=100.0, threshold=20.0), rtol=2e-6, atol=1e-9)
+
+
+def test_fused_head_backward_with_an_output_gradient_missing(points):
+    """With gradient materialisation off, autograd hands None for an unused output."""
+    field = _field()
+    h = field._mlp_input(points, field.encoding(points)).detach().requires_grad_()
+    _, jacobian = field.encoding.forward_with_jacobian(points)
+    grad_scale = torch.cat((field.input_scale.reciprocal().expand(3), field._feature_scale(torch.float32)))
+    class _NoMaterialise(sdf_head._SDFHead):
+        @staticmethod
+        def forward(ctx, *args):
+            ctx.set_materialize_grads(False)
+            return sdf_head._SDFHead.forward(ctx, *args)
+
+    for use in ("feature", "gradient"):
+        args = (h, jacobian.detach(), *(p for layer in field.layers for p in (layer.weight, layer.bias)), grad_scale,
+                100.0, fields._SOFTPLUS_THRESHOLD)
+        feature, grad_sdf = _NoMaterialise.apply(*args)
+        expected_feature, expected_grad = sdf_head._SDFHead.apply(*args)
+        (feature if use == "feature" else grad_sdf).sum().backward()
+        got = h.grad.clone()
+        h.grad = None
+        field.zero_grad(set_to_none=True)
+        (expected_feature if use == "feature" else expected_grad).sum().backward()
+        torch.testing.assert_close(got, h.grad)
+        h.grad = None
+        field.zero_grad(set_to_none=True)

@@ -87,8 +87,8 @@ class _SDFHead(torch.autograd.Function):
         points = jacobian.shape[0]
         w1_t = w1.t().contiguous()  # (D, H)
         need_input, need_jacobian = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        none_rows = z.new_zeros((0, hidden))
-        grad_u, grad_jacobian, grad_w1_from_gin = none_rows, None, None
+        # autograd materialises a missing output gradient as zeros, so None is rare: zeros then too.
+        grad_u, grad_jacobian, grad_w1_from_gin = None, None, None
         if grad_grad_sdf is not None:
             q = z.new_empty((rows, x.shape[1]))  # d loss / d gin, zero on the padding rows
             grad_jacobian = jacobian.new_empty(jacobian.shape if need_jacobian else (0,) + jacobian.shape[1:])
@@ -101,13 +101,15 @@ class _SDFHead(torch.autograd.Function):
             grad_w1_from_gin = onednn_weight_gradients(q, u, w1_t, False)[0].t()
             if not need_jacobian:
                 grad_jacobian = None
-        grad_a, grad_w2, grad_b2 = none_rows, None, None
+        grad_a, grad_w2, grad_b2 = None, None, None
         if grad_feature is not None:
             grad_feature = grad_feature.contiguous()
             if rows > points:
                 grad_feature = torch.cat((grad_feature, grad_feature.new_zeros((rows - points, grad_feature.shape[1]))))
             grad_a = onednn_product(grad_feature, w2.t().contiguous(), None, False)  # (R, H) = gf W2
             grad_w2, grad_b2 = onednn_weight_gradients(grad_feature, a, w2, True)
+        grad_a = torch.zeros_like(z) if grad_a is None else grad_a
+        grad_u = torch.zeros_like(z) if grad_u is None else grad_u
         grad_z, grad_w0 = torch.empty_like(z), z.new_empty(hidden)
         kernel.activation_backward(
             _numpy(z), _numpy(grad_a), _numpy(grad_u), _numpy(w2[0]), ctx.beta, ctx.threshold,
