@@ -32,7 +32,7 @@ from igavatar.kernels import kernels_enabled
 
 __all__ = [
     "linear", "linear_reference", "onednn_linear_available", "onednn_product", "onednn_weight_gradients",
-    "pad_rows", "padded_rows",
+    "pad_rows", "padded_rows", "zero_pad_rows",
 ]
 
 _LOG = logging.getLogger(__name__)
@@ -151,9 +151,13 @@ def pad_rows(x: torch.Tensor) -> torch.Tensor:
     """
     if not _fast_path_applies(x):
         return x
-    rows = x.shape[0]
-    extra = padded_rows(rows) - rows
-    return torch.cat((x, x.new_zeros((extra, x.shape[1])))) if extra else x
+    return zero_pad_rows(x, padded_rows(x.shape[0]))
+
+
+def zero_pad_rows(x: torch.Tensor, rows: int) -> torch.Tensor:
+    """x (P, C) with zero rows appended up to (rows, C); x itself when P >= rows."""
+    extra = rows - x.shape[0]
+    return torch.cat((x, x.new_zeros((extra, x.shape[1])))) if extra > 0 else x
 
 
 def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, relu: bool = False) -> torch.Tensor:

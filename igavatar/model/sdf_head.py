@@ -29,7 +29,9 @@ from torch import nn
 from torch.autograd.function import once_differentiable
 
 from igavatar.kernels import kernels_enabled, load_kernel
-from igavatar.model.linear import onednn_linear_available, onednn_product, onednn_weight_gradients, padded_rows
+from igavatar.model.linear import (
+    onednn_linear_available, onednn_product, onednn_weight_gradients, padded_rows, zero_pad_rows,
+)
 
 __all__ = ["sdf_head_applies", "sdf_head_forward", "sdf_head_with_gradient"]
 
@@ -61,9 +63,7 @@ class _SDFHead(torch.autograd.Function):
         kernel = load_kernel("sdfhead")
         points = mlp_input.shape[0]
         rows = padded_rows(points)  # oneDNN compiles one kernel per shape: keep a few dozen
-        x = mlp_input.detach().contiguous()
-        if rows > points:
-            x = torch.cat((x, x.new_zeros((rows - points, x.shape[1]))))
+        x = zero_pad_rows(mlp_input.detach().contiguous(), rows)
         w1, b1, w2, b2 = (t.detach().contiguous() for t in (w1, b1, w2, b2))
         jacobian = jacobian.detach().contiguous()
         grad_scale = grad_scale.detach().contiguous()
@@ -103,9 +103,7 @@ class _SDFHead(torch.autograd.Function):
                 grad_jacobian = None
         grad_a, grad_w2, grad_b2 = None, None, None
         if grad_feature is not None:
-            grad_feature = grad_feature.contiguous()
-            if rows > points:
-                grad_feature = torch.cat((grad_feature, grad_feature.new_zeros((rows - points, grad_feature.shape[1]))))
+            grad_feature = zero_pad_rows(grad_feature.contiguous(), rows)
             grad_a = onednn_product(grad_feature, w2.t().contiguous(), None, False)  # (R, H) = gf W2
             grad_w2, grad_b2 = onednn_weight_gradients(grad_feature, a, w2, True)
         grad_a = torch.zeros_like(z) if grad_a is None else grad_a
@@ -162,9 +160,7 @@ def sdf_head_forward(
     """
     points = mlp_input.shape[0]
     rows = padded_rows(points)
-    x = mlp_input.contiguous()
-    if rows > points:
-        x = torch.cat((x, x.new_zeros((rows - points, x.shape[1]))))
+    x = zero_pad_rows(mlp_input.contiguous(), rows)
     z = onednn_product(x, first.weight.contiguous(), first.bias.contiguous(), False)
     a = torch.empty_like(z)
     load_kernel("sdfhead").softplus(_numpy(z), float(beta), float(threshold), _numpy(a))

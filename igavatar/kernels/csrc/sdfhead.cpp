@@ -16,7 +16,7 @@
 // sigmoid = 1 / (1 + e) or e / (1 + e), and s (1 - s) = e / (1 + e)^2 without cancellation.
 // exp and log1p are written out (Cephes-style polynomials; tests hold them to 2e-6 relative
 // against float64) so the loops vectorise. target_clones picks the AVX-512 / AVX2 / plain copy by
-// CPU feature when the library loads, so the cached library runs on any x86-64.
+// CPU feature when the library loads (see IGA_CLONES), so the cached library runs on any x86-64.
 //
 // numpy in, numpy out (pybind11 only, no ATen headers: builds in seconds). Outputs are
 // preallocated by the caller (torch tensors seen through .numpy()) and written in place.
@@ -39,7 +39,12 @@
 namespace py = pybind11;
 using Floats = py::array_t<float, py::array::c_style>;
 
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+// Clones by ISA level (x86-64-v4: AVX-512, v3: AVX2 + FMA), dispatched on CPU features, never on the
+// CPU model (an `arch=haswell` clone never runs on AMD). Feature-named clones ("avx2") are the
+// fallback for GCC < 12; their AVX2 copy does not vectorise these loops (no blend/FMA set).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
+#define IGA_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #define IGA_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
 #define IGA_CLONES
@@ -106,6 +111,19 @@ float* output(const py::buffer& buffer, const std::vector<py::ssize_t>& shape, c
   return static_cast<float*>(info.ptr);
 }
 
+// The shared per-element terms at beta z (see the header comment): e = exp(-|beta z|); `linear`:
+// beta z > threshold (identity, slope 1, s' = 0). Scalars, not a struct, so GCC still vectorises.
+__attribute__((always_inline)) inline float softplus_value(float zn, float bz, float e, bool linear, float inv_beta) {
+  // Both sides evaluated, then selected: a branch here would stop the AVX2 copy vectorising.
+  const float soft = ((bz > 0.0f ? bz : 0.0f) + log1p_unit(e)) * inv_beta;
+  return linear ? zn : soft;
+}
+
+// sigmoid(beta z) from e and inv = 1 / (1 + e); 1 where linear.
+__attribute__((always_inline)) inline float slope_value(float bz, float e, float inv, bool linear) {
+  return linear ? 1.0f : (bz >= 0.0f ? inv : e * inv);
+}
+
 // Rows [r0, r1) of a = softplus(z) and u = slope(z) * w0.
 IGA_CLONES void activation_forward_rows(const float* z, const float* w0, float beta, float threshold, float* a,
                                         float* u, int64_t r0, int64_t r1, int64_t H) {
@@ -114,15 +132,11 @@ IGA_CLONES void activation_forward_rows(const float* z, const float* w0, float b
     const int64_t base = r * H;
 #pragma omp simd
     for (int64_t h = 0; h < H; ++h) {
-      const float zn = z[base + h];
-      const float bz = beta * zn;
+      const float bz = beta * z[base + h];
       const float e = exp_nonpositive(-__builtin_fabsf(bz));
-      const float inv = 1.0f / (1.0f + e);
       const bool linear = bz > threshold;
-      const float s = linear ? 1.0f : (bz >= 0.0f ? inv : e * inv);
-      const float soft = ((bz > 0.0f ? bz : 0.0f) + log1p_unit(e)) * inv_beta;
-      a[base + h] = linear ? zn : soft;
-      u[base + h] = s * w0[h];
+      a[base + h] = softplus_value(z[base + h], bz, e, linear, inv_beta);
+      u[base + h] = slope_value(bz, e, 1.0f / (1.0f + e), linear) * w0[h];
     }
   }
 }
@@ -135,11 +149,8 @@ IGA_CLONES void softplus_rows(const float* z, float beta, float threshold, float
     const int64_t base = r * H;
 #pragma omp simd
     for (int64_t h = 0; h < H; ++h) {
-      const float zn = z[base + h];
-      const float bz = beta * zn;
-      const float e = exp_nonpositive(-__builtin_fabsf(bz));
-      const float soft = ((bz > 0.0f ? bz : 0.0f) + log1p_unit(e)) * inv_beta;
-      a[base + h] = bz > threshold ? zn : soft;
+      const float bz = beta * z[base + h];
+      a[base + h] = softplus_value(z[base + h], bz, exp_nonpositive(-__builtin_fabsf(bz)), bz > threshold, inv_beta);
     }
   }
 }
@@ -156,7 +167,7 @@ IGA_CLONES void activation_backward_rows(const float* z, const float* ga, const 
       const float e = exp_nonpositive(-__builtin_fabsf(bz));
       const float inv = 1.0f / (1.0f + e);
       const bool linear = bz > threshold;
-      const float s = linear ? 1.0f : (bz >= 0.0f ? inv : e * inv);
+      const float s = slope_value(bz, e, inv, linear);
       const float ds = linear ? 0.0f : beta * e * inv * inv;  // d slope / dz = beta s (1 - s)
       gz[base + h] = ga[base + h] * s + gu[base + h] * w0[h] * ds;
       gw0[h] += gu[base + h] * s;
