@@ -12,8 +12,11 @@ product's output pass.
 
 The fast path runs the forward product and the input gradient on oneDNN (``torch.ops.mkldnn.
 _linear_pointwise``, the op torch's own compiler emits for CPU linear layers) and the weight and
-bias gradients on oneDNN's inner-product backward (``aten::mkldnn_linear_backward_weights``, the
-backward of torch's ``mkldnn_linear``). It is used when
+bias gradients on the ``wgrad`` kernel (``igavatar/kernels/csrc/wgrad.cpp``: ``grad^T x`` read
+straight from the two row-major (P, .) arrays, 1.7-4x faster than oneDNN's inner-product backward,
+which first copies both into its own layout). Layers with neither side a multiple of 16, or
+without the kernel built, use that oneDNN backward (``aten::mkldnn_linear_backward_weights``).
+It is used when
 `kernels_enabled()`, for 2-D float32 CPU inputs, and when this torch build has the op; otherwise,
 and always with ``IGAVATAR_KERNELS=0``, the layer is plain `F.linear` (+ `relu`). The fast path is
 differentiable once (like every first-order training loss here); a double backward raises.
@@ -28,11 +31,11 @@ import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-from igavatar.kernels import kernels_enabled
+from igavatar.kernels import kernels_enabled, load_kernel
 
 __all__ = [
     "linear", "linear_reference", "onednn_linear_available", "onednn_product", "onednn_weight_gradients",
-    "pad_rows", "padded_rows", "zero_pad_rows",
+    "pad_rows", "padded_rows", "weight_gradients", "weight_gradients_reference", "zero_pad_rows",
 ]
 
 _LOG = logging.getLogger(__name__)
@@ -59,6 +62,43 @@ def onednn_weight_gradients(
     grad_weight, grad_bias = torch.ops.aten.mkldnn_linear_backward_weights(
         grad.to_mkldnn(), x.to_mkldnn(), weight, with_bias
     )
+    return grad_weight, grad_bias if with_bias else None
+
+
+def weight_gradients_reference(
+    grad: torch.Tensor, x: torch.Tensor, with_bias: bool
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``grad.t() @ x`` (out, in) and ``grad.sum(0)`` (out,) or None: what the fast paths compute."""
+    return grad.t() @ x, grad.sum(0) if with_bias else None
+
+
+def weight_gradients(
+    grad: torch.Tensor, x: torch.Tensor, weight: torch.Tensor, with_bias: bool
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """A layer's weight and bias gradients from its output gradient and input.
+
+    Args:
+        grad: (P, out) gradient of the layer's output; x: (P, in) its input; float32 CPU.
+        weight: (out, in), only read by the oneDNN fallback (its primitive wants the shape).
+        with_bias: also return the bias gradient.
+    Returns:
+        grad_weight (out, in) = grad^T x and grad_bias (out,) = grad summed over rows (or None);
+        on the ``wgrad`` kernel when ``in`` or ``out`` is a multiple of 16, else on oneDNN.
+    """
+    kernel = load_kernel("wgrad")
+    out_dim, in_dim = grad.shape[1], x.shape[1]
+    if kernel is None or (in_dim % 16 and out_dim % 16):
+        return onednn_weight_gradients(grad, x, weight, with_bias)
+    grad, x = grad.detach().contiguous(), x.detach().contiguous()
+    empty = grad.new_empty(0)
+    grad_bias = grad.new_empty(out_dim) if with_bias else empty
+    if in_dim % 16 == 0:  # vectors along `in`: grad^T x directly
+        grad_weight = grad.new_empty((out_dim, in_dim))
+        kernel.outer_sum(grad.numpy(), x.numpy(), grad_weight.numpy(), grad_bias.numpy(), empty.numpy())
+    else:  # vectors along `out`: (x^T grad)^T, a small (in, out) transpose
+        grad_weight_t = grad.new_empty((in_dim, out_dim))
+        kernel.outer_sum(x.numpy(), grad.numpy(), grad_weight_t.numpy(), empty.numpy(), grad_bias.numpy())
+        grad_weight = grad_weight_t.t().contiguous()
     return grad_weight, grad_bias if with_bias else None
 
 
@@ -92,7 +132,7 @@ def onednn_linear_available() -> bool:
 
 
 class _OneDnnLinear(torch.autograd.Function):
-    """relu?(x W^T + b) with oneDNN forward and input gradient, `mm` weight gradient."""
+    """relu?(x W^T + b) with oneDNN forward and input gradient, :func:`weight_gradients` for W and b."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, relu: bool) -> torch.Tensor:
@@ -116,7 +156,7 @@ class _OneDnnLinear(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_x = onednn_product(grad, weight.t().contiguous(), None, False)
         if ctx.needs_input_grad[1]:
-            grad_weight, grad_bias = onednn_weight_gradients(grad, x, weight, ctx.has_bias)
+            grad_weight, grad_bias = weight_gradients(grad, x, weight, ctx.has_bias)
         elif ctx.has_bias and ctx.needs_input_grad[2]:
             grad_bias = grad.sum(0)
         return grad_x, grad_weight, grad_bias if ctx.needs_input_grad[2] else None, None

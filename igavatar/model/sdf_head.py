@@ -13,8 +13,9 @@ network (one Softplus hidden layer, no positional encoding). With ``z = W1 x + b
 
 where ``k = grad_scale`` (1 / input scale for the point, the level weights for the hash features)
 and ``J`` the hash grid's spatial Jacobian. The reference computes the same with torch ops and
-autograd; here the five matrix products of the forward and backward run on oneDNN
-(:mod:`igavatar.model.linear`, rows padded to cached shapes) and everything between them in
+autograd; here the matrix products of the forward and backward run on oneDNN and the weight
+gradients on the ``wgrad`` kernel (:mod:`igavatar.model.linear`, rows padded to cached shapes)
+and everything between them in
 ``igavatar/kernels/csrc/sdfhead.cpp``: one pass per element-wise stage, the Jacobian contraction
 and its backward without materialising (P, C, 3) outer products in torch. The backward is exact
 (``once_differentiable``, like every first-order loss here): gradients to the MLP input, the
@@ -30,7 +31,7 @@ from torch.autograd.function import once_differentiable
 
 from igavatar.kernels import kernels_enabled, load_kernel
 from igavatar.model.linear import (
-    onednn_linear_available, onednn_product, onednn_weight_gradients, padded_rows, zero_pad_rows,
+    onednn_linear_available, onednn_product, padded_rows, weight_gradients, zero_pad_rows,
 )
 
 __all__ = ["sdf_head_applies", "sdf_head_forward", "sdf_head_with_gradient"]
@@ -98,14 +99,14 @@ class _SDFHead(torch.autograd.Function):
             )
             grad_u = onednn_product(q, w1, None, False)  # (R, H) = q W1^T
             # gin = u W1 is a layer with weight W1^T: its weight gradient q^T u is (D, H).
-            grad_w1_from_gin = onednn_weight_gradients(q, u, w1_t, False)[0].t()
+            grad_w1_from_gin = weight_gradients(q, u, w1_t, False)[0].t()
             if not need_jacobian:
                 grad_jacobian = None
         grad_a, grad_w2, grad_b2 = None, None, None
         if grad_feature is not None:
             grad_feature = zero_pad_rows(grad_feature.contiguous(), rows)
             grad_a = onednn_product(grad_feature, w2.t().contiguous(), None, False)  # (R, H) = gf W2
-            grad_w2, grad_b2 = onednn_weight_gradients(grad_feature, a, w2, True)
+            grad_w2, grad_b2 = weight_gradients(grad_feature, a, w2, True)
         grad_a = torch.zeros_like(z) if grad_a is None else grad_a
         grad_u = torch.zeros_like(z) if grad_u is None else grad_u
         grad_z, grad_w0 = torch.empty_like(z), z.new_empty(hidden)
@@ -116,7 +117,7 @@ class _SDFHead(torch.autograd.Function):
         if grad_w2 is None:
             grad_w2, grad_b2 = torch.zeros_like(w2), w2.new_zeros(w2.shape[0])
         grad_w2[0] += grad_w0  # u = s * W2[0]
-        grad_w1, grad_b1 = onednn_weight_gradients(grad_z, x, w1, True)
+        grad_w1, grad_b1 = weight_gradients(grad_z, x, w1, True)
         if grad_w1_from_gin is not None:
             grad_w1 = grad_w1 + grad_w1_from_gin
         grad_input = onednn_product(grad_z, w1_t, None, False)[:points] if need_input else None

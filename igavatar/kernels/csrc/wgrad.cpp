@@ -1,0 +1,206 @@
+// Weight gradients of fully connected layers straight from row-major activations:
+//
+//   out (M, N) = A^T B = sum_p A[p, :]^T B[p, :]      A (P, M), B (P, N), N a multiple of 16
+//   a_sums (M,) = sum_p A[p, :], b_sums (N,) = sum_p B[p, :]   (optional: the bias gradient)
+//
+// For a layer y = x W^T + b with upstream gradient g (P, out): grad_W = g^T x is out(A = g, B = x)
+// when `in` is a multiple of 16, else (out(A = x, B = g))^T when `out` is. oneDNN's own
+// weight-gradient primitive (igavatar/model/linear.py) first converts both (P, .) operands into
+// its layout, a full copy of each through memory on every call; here the rows are read where
+// they lie. Why this is fast: every row p adds an outer product, so a tile of R rows of `out` by
+// 16 V columns lives in R * V vector registers while p runs over a block of rows whose B slice
+// stays in L1; each B vector loaded feeds R fused multiply-adds. The rows are split between
+// threads, each with its own partial sums, added in thread order: deterministic for a given
+// thread count. Each row block's partial tile starts from zero and is then added to the total,
+// a two-level sum that keeps the float32 rounding of a 20k-row reduction small.
+//
+// GCC vector extensions (16 floats) under target_clones: the AVX-512 copy keeps one zmm register
+// per vector, the AVX2 copy two ymm, the plain copy four xmm. numpy in, numpy out (pybind11 only).
+
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstring>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+// a * b + c as one rounding where the ISA has FMA (the -std=c++ modes switch GCC's contraction off).
+#pragma GCC optimize("fp-contract=fast")
+
+namespace py = pybind11;
+using Floats = py::array_t<float, py::array::c_style>;
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
+#define IGA_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define IGA_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define IGA_CLONES
+#endif
+
+namespace {
+
+typedef float Vec __attribute__((vector_size(64)));
+typedef float VecU __attribute__((vector_size(64), aligned(4)));  // the same, at any float address
+
+constexpr int64_t kBlockRows = 128;  // rows per block: a 128 x 64 float slice of B is 32 KB (L1)
+
+__attribute__((always_inline)) inline Vec load(const float* p) { return *reinterpret_cast<const VecU*>(p); }
+
+// out[0:R, 0:16V] (row stride ldo) += sum_{p < rows} a[p, 0:R]^T b[p, 0:16V] (row strides lda, ldb).
+template <int R, int V>
+__attribute__((always_inline)) inline void tile(const float* a, int64_t lda, const float* b, int64_t ldb,
+                                                int64_t rows, float* out, int64_t ldo) {
+  Vec acc[R][V];
+#pragma GCC unroll 8
+  for (int r = 0; r < R; ++r)
+#pragma GCC unroll 4
+    for (int v = 0; v < V; ++v) acc[r][v] = Vec{};
+  for (int64_t p = 0; p < rows; ++p) {
+    Vec bv[V];
+#pragma GCC unroll 4
+    for (int v = 0; v < V; ++v) bv[v] = load(b + p * ldb + 16 * v);
+#pragma GCC unroll 8
+    for (int r = 0; r < R; ++r) {
+      const float s = a[p * lda + r];
+#pragma GCC unroll 4
+      for (int v = 0; v < V; ++v) acc[r][v] += s * bv[v];
+    }
+  }
+#pragma GCC unroll 8
+  for (int r = 0; r < R; ++r)
+#pragma GCC unroll 4
+    for (int v = 0; v < V; ++v) {
+      VecU* o = reinterpret_cast<VecU*>(out + r * ldo + 16 * v);
+      *o += acc[r][v];
+    }
+}
+
+// All R-row tiles of one 16V-column slab: full groups of 4 rows, then the 1-3 left over.
+template <int V>
+__attribute__((always_inline)) inline void slab(const float* a, int64_t M, const float* b, int64_t N,
+                                                int64_t rows, float* out) {
+  int64_t m = 0;
+  for (; m + 4 <= M; m += 4) tile<4, V>(a + m, M, b, N, rows, out + m * N, N);
+  switch (M - m) {
+    case 3: tile<3, V>(a + m, M, b, N, rows, out + m * N, N); break;
+    case 2: tile<2, V>(a + m, M, b, N, rows, out + m * N, N); break;
+    case 1: tile<1, V>(a + m, M, b, N, rows, out + m * N, N); break;
+    default: break;
+  }
+}
+
+// Rows [p0, p1) of A (P, M) and B (P, N) added into out (M, N), and into the column sums of A and B
+// where a_sums / b_sums are set.
+IGA_CLONES void outer_sum_rows(const float* a, const float* b, int64_t M, int64_t N, int64_t p0, int64_t p1,
+                               float* out, float* a_sums, float* b_sums) {
+  for (int64_t q0 = p0; q0 < p1; q0 += kBlockRows) {
+    const int64_t rows = std::min(kBlockRows, p1 - q0);
+    const float* ab = a + q0 * M;
+    const float* bb = b + q0 * N;
+    int64_t n = 0;
+    for (; n + 64 <= N; n += 64) slab<4>(ab, M, bb + n, N, rows, out + n);
+    switch ((N - n) / 16) {
+      case 3: slab<3>(ab, M, bb + n, N, rows, out + n); break;
+      case 2: slab<2>(ab, M, bb + n, N, rows, out + n); break;
+      case 1: slab<1>(ab, M, bb + n, N, rows, out + n); break;
+      default: break;
+    }
+    if (a_sums != nullptr)
+      for (int64_t p = 0; p < rows; ++p) {
+        const float* row = ab + p * M;
+#pragma omp simd
+        for (int64_t m = 0; m < M; ++m) a_sums[m] += row[m];
+      }
+    if (b_sums != nullptr)
+      for (int64_t p = 0; p < rows; ++p) {
+        const float* row = bb + p * N;
+#pragma omp simd
+        for (int64_t n = 0; n < N; ++n) b_sums[n] += row[n];
+      }
+  }
+}
+
+const float* input(const Floats& array, const char* name) {
+  if (array.ndim() != 2) throw std::invalid_argument(std::string("wgrad: ") + name + " must be 2-D (P, C)");
+  return array.data();
+}
+
+// Outputs come as buffers, not array_t: a converted copy would take the writes and lose them.
+float* output(const py::buffer& buffer, const std::vector<py::ssize_t>& shape, const char* name) {
+  const py::buffer_info info = buffer.request(true);
+  const auto fail = [&](const char* why) { throw std::invalid_argument(std::string("wgrad: output ") + name + " " + why); };
+  if (info.format != py::format_descriptor<float>::format() || info.itemsize != sizeof(float)) fail("must be float32");
+  if (info.ndim != static_cast<py::ssize_t>(shape.size())) fail("has the wrong number of dimensions");
+  py::ssize_t stride = sizeof(float);
+  for (py::ssize_t i = info.ndim - 1; i >= 0; --i) {
+    if (info.shape[i] != shape[i]) fail("has the wrong shape");
+    if (info.shape[i] > 1 && info.strides[i] != stride) fail("must be C-contiguous");
+    stride *= info.shape[i];
+  }
+  return static_cast<float*>(info.ptr);
+}
+
+// out = A^T B; a_sums / b_sums = the column sums of A / B, each skipped when passed empty.
+void outer_sum(const Floats& a, const Floats& b, const py::buffer& out, const py::buffer& a_sums,
+               const py::buffer& b_sums) {
+  const float* ap = input(a, "a");
+  const float* bp = input(b, "b");
+  const int64_t P = a.shape(0), M = a.shape(1), N = b.shape(1);
+  if (b.shape(0) != P) throw std::invalid_argument("wgrad: a and b must have the same number of rows");
+  if (N % 16 != 0 || N == 0) throw std::invalid_argument("wgrad: b's column count must be a positive multiple of 16");
+  float* op = output(out, {M, N}, "out");
+  float* asp = a_sums.request().size > 0 ? output(a_sums, {M}, "a_sums") : nullptr;
+  float* bsp = b_sums.request().size > 0 ? output(b_sums, {N}, "b_sums") : nullptr;
+  py::gil_scoped_release release;
+  const int64_t blocks = (P + kBlockRows - 1) / kBlockRows;
+#ifdef _OPENMP
+  const int64_t max_threads = std::max<int64_t>(1, std::min<int64_t>(omp_get_max_threads(), blocks));
+#else
+  const int64_t max_threads = 1;
+#endif
+  // Thread 0 sums into the outputs, the others into partials added in thread order afterwards.
+  const int64_t stride = M * N + M + N;  // one partial: out, a_sums, b_sums
+  std::fill(op, op + M * N, 0.0f);
+  if (asp != nullptr) std::fill(asp, asp + M, 0.0f);
+  if (bsp != nullptr) std::fill(bsp, bsp + N, 0.0f);
+  std::vector<float> partial(static_cast<size_t>((max_threads - 1) * stride), 0.0f);
+#pragma omp parallel num_threads(max_threads)
+  {
+#ifdef _OPENMP
+    const int64_t thread = omp_get_thread_num(), n_threads = omp_get_num_threads();
+#else
+    const int64_t thread = 0, n_threads = 1;
+#endif
+    // Contiguous row ranges in whole blocks, one per thread.
+    const int64_t p0 = std::min(P, (blocks * thread / n_threads) * kBlockRows);
+    const int64_t p1 = std::min(P, (blocks * (thread + 1) / n_threads) * kBlockRows);
+    float* mine = thread == 0 ? op : partial.data() + (thread - 1) * stride;
+    float* my_a = asp == nullptr ? nullptr : (thread == 0 ? asp : mine + M * N);
+    float* my_b = bsp == nullptr ? nullptr : (thread == 0 ? bsp : mine + M * N + M);
+    outer_sum_rows(ap, bp, M, N, p0, p1, mine, my_a, my_b);
+  }
+  for (int64_t t = 1; t < max_threads; ++t) {
+    const float* part = partial.data() + (t - 1) * stride;
+    for (int64_t i = 0; i < M * N; ++i) op[i] += part[i];
+    if (asp != nullptr)
+      for (int64_t m = 0; m < M; ++m) asp[m] += part[M * N + m];
+    if (bsp != nullptr)
+      for (int64_t n = 0; n < N; ++n) bsp[n] += part[M * N + M + n];
+  }
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "Weight gradients A^T B of fully connected layers from row-major (P, M), (P, N) float32 arrays";
+  m.def("outer_sum", &outer_sum, "out (M, N) = a^T b, and the column sums of a and b unless passed empty (in place)",
+        py::arg("a"), py::arg("b"), py::arg("out"), py::arg("a_sums"), py::arg("b_sums"));
+}
