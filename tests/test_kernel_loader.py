@@ -69,3 +69,16 @@ def test_build_kernels_builds_only_missing_ones_under_a_progress_task(monkeypatc
     monkeypatch.setattr(stage_kernels, "kernels_enabled", lambda: False)
     stage_kernels.build_kernels(torch.device("cpu"), progress)
     assert progress.tasks == [] and built == ["hashgrid"]
+
+
+def test_cache_key_covers_the_kernel_source_and_the_shared_headers(tmp_path, monkeypatch):
+    monkeypatch.setattr(kernels, "_SOURCE_DIR", tmp_path)
+    monkeypatch.setenv("IGAVATAR_KERNEL_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "k.cpp").write_text('#include "shared.h"\n')
+    (tmp_path / "shared.h").write_text("// v1\n")
+    first = kernels._cache_dir("k")
+    assert first.parent == tmp_path / "cache" and first.name.startswith("k-")
+    (tmp_path / "shared.h").write_text("// v2\n")  # a header edit must not load the old library
+    second = kernels._cache_dir("k")
+    (tmp_path / "k.cpp").write_text('#include "shared.h"\n// edited\n')
+    assert len({first, second, kernels._cache_dir("k")}) == 3

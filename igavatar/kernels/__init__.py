@@ -4,10 +4,11 @@
     module = load_kernel("skinning")        # None: use the plain PyTorch path
     if module is not None and kernel_applies(x): y = module.broyden(...)
 
-Sources live in ``csrc/<name>.cpp`` next to this file. Nothing compiles at import time: the first
-call of :func:`load_kernel` builds the extension with ``torch.utils.cpp_extension.load`` (ninja and
-a C++ compiler; about 30-60 s per kernel on 2 cores) into a per-torch-version cache directory, and
-later processes load the cached library in milliseconds. When the build fails (no compiler, no
+Sources live in ``csrc/<name>.cpp`` next to this file, shared headers in ``csrc/*.h`` (part of
+every kernel's cache key). Nothing compiles at import time: the first call of :func:`load_kernel`
+builds the extension with ``torch.utils.cpp_extension.load`` (ninja and a C++ compiler; about
+30-60 s per kernel on 2 cores) into a per-torch-version cache directory, and later processes load
+the cached library in milliseconds. When the build fails (no compiler, no
 ninja) the caller gets None, falls back to the reference path, and one line on stderr says why.
 
 ``IGAVATAR_KERNELS=0`` turns every fast path off, the kernels and the PyTorch-level shortcuts
@@ -52,19 +53,22 @@ def set_kernels_enabled(enabled: bool | None) -> None:
     _OVERRIDE = enabled
 
 
-def _cache_dir(name: str, source: bytes) -> Path:
+def _cache_dir(name: str) -> Path:
     root = Path(os.environ.get("IGAVATAR_KERNEL_CACHE", Path.home() / ".cache" / "igavatar" / "kernels"))
-    # One directory per torch build and source text: a stale library is never loaded.
-    digest = hashlib.sha1(source + torch.__version__.encode()).hexdigest()[:12]
-    return root / f"{name}-{digest}"
+    # One directory per torch build and source text, the shared headers included (csrc/*.h): a
+    # stale library is never loaded.
+    digest = hashlib.sha1((_SOURCE_DIR / f"{name}.cpp").read_bytes())
+    for header in sorted(_SOURCE_DIR.glob("*.h")):
+        digest.update(header.name.encode() + header.read_bytes())
+    digest.update(torch.__version__.encode())
+    return root / f"{name}-{digest.hexdigest()[:12]}"
 
 
 def kernel_built(name: str) -> bool:
     """Whether loading `name` is quick: already loaded here, or a compiled library is cached."""
     if name in _LOADED:
         return True
-    source = (_SOURCE_DIR / f"{name}.cpp").read_bytes()
-    return any(_cache_dir(name, source).glob("*.so"))
+    return any(_cache_dir(name).glob("*.so"))
 
 
 def load_kernel(name: str) -> ModuleType | None:
@@ -93,7 +97,7 @@ def _build(name: str) -> ModuleType:
     from torch.utils import cpp_extension
 
     source_path = _SOURCE_DIR / f"{name}.cpp"
-    build_dir = _cache_dir(name, source_path.read_bytes())
+    build_dir = _cache_dir(name)
     build_dir.mkdir(parents=True, exist_ok=True)
     return cpp_extension.load(
         name=f"igavatar_{name}",

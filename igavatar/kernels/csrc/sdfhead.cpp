@@ -16,13 +16,15 @@
 // sigmoid = 1 / (1 + e) or e / (1 + e), and s (1 - s) = e / (1 + e)^2 without cancellation.
 // exp and log1p are written out (Cephes-style polynomials; tests hold them to 2e-6 relative
 // against float64) so the loops vectorise. target_clones picks the AVX-512 / AVX2 / plain copy by
-// CPU feature when the library loads (see IGA_CLONES), so the cached library runs on any x86-64.
+// CPU feature when the library loads (IGA_CLONES in numpy_kernel.h), so the cached library runs on any x86-64.
 //
 // numpy in, numpy out (pybind11 only, no ATen headers: builds in seconds). Outputs are
 // preallocated by the caller (torch tensors seen through .numpy()) and written in place.
 
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
+
+#include "numpy_kernel.h"
 
 #include <algorithm>
 #include <cmath>
@@ -38,17 +40,6 @@
 
 namespace py = pybind11;
 using Floats = py::array_t<float, py::array::c_style>;
-
-// Clones by ISA level (x86-64-v4: AVX-512, v3: AVX2 + FMA), dispatched on CPU features, never on the
-// CPU model (an `arch=haswell` clone never runs on AMD). Feature-named clones ("avx2") are the
-// fallback for GCC < 12; their AVX2 copy does not vectorise these loops (no blend/FMA set).
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
-#define IGA_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define IGA_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
-#else
-#define IGA_CLONES
-#endif
 
 namespace {
 
@@ -94,21 +85,8 @@ const float* input(const Floats& array, const std::vector<py::ssize_t>& shape, c
   return array.data();
 }
 
-// Outputs come as buffers, not array_t: a converted copy would take the writes and lose them.
 float* output(const py::buffer& buffer, const std::vector<py::ssize_t>& shape, const char* name) {
-  const py::buffer_info info = buffer.request(true);
-  const auto fail = [&](const char* why) {
-    throw std::invalid_argument(std::string("sdfhead: output ") + name + " " + why);
-  };
-  if (info.format != py::format_descriptor<float>::format() || info.itemsize != sizeof(float)) fail("must be float32");
-  if (info.ndim != static_cast<py::ssize_t>(shape.size())) fail("has the wrong number of dimensions");
-  py::ssize_t stride = sizeof(float);
-  for (py::ssize_t i = info.ndim - 1; i >= 0; --i) {
-    if (info.shape[i] != shape[i]) fail("has the wrong shape");
-    if (info.shape[i] > 1 && info.strides[i] != stride) fail("must be C-contiguous");
-    stride *= info.shape[i];
-  }
-  return static_cast<float*>(info.ptr);
+  return iga::output_floats(buffer, shape, "sdfhead", name);
 }
 
 // The shared per-element terms at beta z (see the header comment): e = exp(-|beta z|); `linear`:

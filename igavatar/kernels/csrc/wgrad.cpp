@@ -21,9 +21,10 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include "numpy_kernel.h"
+
 #include <algorithm>
 #include <cstdint>
-#include <cstring>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -37,14 +38,6 @@
 
 namespace py = pybind11;
 using Floats = py::array_t<float, py::array::c_style>;
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
-#define IGA_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define IGA_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
-#else
-#define IGA_CLONES
-#endif
 
 namespace {
 
@@ -135,19 +128,8 @@ const float* input(const Floats& array, const char* name) {
   return array.data();
 }
 
-// Outputs come as buffers, not array_t: a converted copy would take the writes and lose them.
 float* output(const py::buffer& buffer, const std::vector<py::ssize_t>& shape, const char* name) {
-  const py::buffer_info info = buffer.request(true);
-  const auto fail = [&](const char* why) { throw std::invalid_argument(std::string("wgrad: output ") + name + " " + why); };
-  if (info.format != py::format_descriptor<float>::format() || info.itemsize != sizeof(float)) fail("must be float32");
-  if (info.ndim != static_cast<py::ssize_t>(shape.size())) fail("has the wrong number of dimensions");
-  py::ssize_t stride = sizeof(float);
-  for (py::ssize_t i = info.ndim - 1; i >= 0; --i) {
-    if (info.shape[i] != shape[i]) fail("has the wrong shape");
-    if (info.shape[i] > 1 && info.strides[i] != stride) fail("must be C-contiguous");
-    stride *= info.shape[i];
-  }
-  return static_cast<float*>(info.ptr);
+  return iga::output_floats(buffer, shape, "wgrad", name);
 }
 
 // out = A^T B; a_sums / b_sums = the column sums of A / B, each skipped when passed empty.
