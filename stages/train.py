@@ -133,9 +133,26 @@ def build_avatar(config: TrainConfig, subject: dict, pose_dim: int) -> Avatar:
     )
 
 
-def _shape_init_key(config: TrainConfig, template_sha: str | None) -> str:
-    return sha256_json({"sdf": dataclasses.asdict(config.avatar.sdf), "steps": config.shape_init_steps,
-                        "points": config.shape_init_points, "template": template_sha, "seed": config.seed})
+#: Bump when the shape initialisation's targets or optimisation change, so that caches written
+#: by an older version are not reused as if they were the same fit.
+SHAPE_INIT_VERSION = 2
+
+
+def _shape_init_key(config: TrainConfig, template_sha: str | None, canonical_box: np.ndarray) -> str:
+    """Everything that decides the shape initialisation's result (the cache is reused only on a match)."""
+    return sha256_json({"version": SHAPE_INIT_VERSION, "sdf": dataclasses.asdict(config.avatar.sdf),
+                        "steps": config.shape_init_steps, "points": config.shape_init_points,
+                        "template": template_sha, "canonical_box": np.asarray(canonical_box, np.float64).round(7).tolist(),
+                        "seed": config.seed})
+
+
+def _snapshot(state: dict) -> dict:
+    """A copy of a state dict that shares no storage with the live parameters.
+
+    `state_dict()` returns views of the parameters: saved after training, they would hold the
+    trained SDF instead of the initial fit.
+    """
+    return {name: value.detach().clone() for name, value in state.items()}
 
 
 def _shape_initialise(
@@ -143,7 +160,7 @@ def _shape_initialise(
 ) -> tuple[dict, float]:
     """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds)."""
     template = dataset / "template.ply"
-    key = _shape_init_key(config, sha256_file(template) if template.is_file() else None)
+    key = _shape_init_key(config, sha256_file(template) if template.is_file() else None, subject["canonical_box"])
     for path in cache_paths:
         if path.is_file():
             cached = load_state(path)
@@ -164,7 +181,7 @@ def _shape_initialise(
             )
     else:
         progress.status("no template mesh: the SDF starts as a sphere")
-    return {"key": key, "sdf": avatar.sdf_field.state_dict()}, time.perf_counter() - started
+    return {"key": key, "sdf": _snapshot(avatar.sdf_field.state_dict())}, time.perf_counter() - started
 
 
 def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) -> tuple[np.ndarray, float]:

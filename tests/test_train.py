@@ -221,3 +221,24 @@ def test_a_step_without_valid_samples_is_counted_not_stepped(small_run):
     logs = trainer.train_step()
     assert trainer.step == 1 and logs["samples"] == 0 and np.isfinite(logs["loss"])
     assert all(torch.equal(p, before[n]) for n, p in trainer.avatar.named_parameters())
+
+
+def test_shape_init_artifact_holds_the_initial_fit_and_a_rerun_matches_a_fresh_run(small_run, tmp_path):
+    """The saved shape initialisation is the fit before training, so a second run into the same
+    --out (which reuses it as a cache) starts where a fresh run starts and ends where it ends."""
+    from stages.train import TrainOptions, run_train
+
+    options = dict(dataset=small_run / "dataset", preset="tiny", steps=2, device="cpu")
+    run_train(TrainOptions(out=tmp_path / "reused", **options))
+    init = load_state(tmp_path / "reused" / "shape_init.npz")["sdf"]
+    trained = load_state(tmp_path / "reused" / "weights.npz")["avatar"]
+    assert init.keys() and all(f"sdf_field.{name}" in trained for name in init)
+    assert not np.array_equal(init["encoding.table"], trained["sdf_field.encoding.table"]), "shape_init.npz holds the trained SDF"
+
+    run_train(TrainOptions(out=tmp_path / "reused", **options))  # reuses reused/shape_init.npz
+    run_train(TrainOptions(out=tmp_path / "fresh", **options))
+    again = flatten(load_state(tmp_path / "reused" / "weights.npz")["avatar"])
+    fresh = flatten(load_state(tmp_path / "fresh" / "weights.npz")["avatar"])
+    assert again.keys() == fresh.keys()
+    for key, value in fresh.items():
+        assert np.array_equal(again[key], value), key
