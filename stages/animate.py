@@ -33,6 +33,7 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact, read_manifest
 from igavatar.body.motions import MOTION_NAMES, SKELETON_KINDS, body_to_world, motion_by_name, walk
 from igavatar.body.rotations import matrix_to_axis_angle
@@ -444,6 +445,10 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         raise InputError(f"--samples {options.samples}: expected at least 1")
     if options.meshes and options.mesh_resolution < 16:
         raise InputError(f"--mesh-resolution {options.mesh_resolution}: expected at least 16")
+    out = Path(options.out)
+    motion_path = Path(options.motion) if options.motion not in MOTION_NAMES else None
+    output_inputs = [Path(options.model), motion_path, options.camera_file, options.dataset]
+    check_output_target(out, "animation", output_inputs)
     device = resolve_device(options.device)
     build_kernels(device, progress)
     if not (Path(options.model) / "manifest.json").is_file():
@@ -474,11 +479,10 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         surface = _canonical_surface(model, options.mesh_resolution)
         timings["canonical_mesh_s"] = time.perf_counter() - tick
 
-    out = Path(options.out)
     width_digits = max(4, len(str(n_frames - 1)))
     coverage: list[float] = []
     render_seconds = mesh_seconds = render_cpu_seconds = 0.0
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="animation", inputs=output_inputs) as tmp:
         (tmp / "frames").mkdir()
         if surface is not None:
             (tmp / "meshes").mkdir()

@@ -49,6 +49,7 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import (
     MANIFEST_NAME,
     InputRecord,
@@ -548,11 +549,8 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     device = resolve_device(options.device)
     build_kernels(device, progress)
     out, model_path = Path(options.out), Path(options.model)
-    if model_path.resolve() == out.resolve():
-        raise InputError(f"--out {out}: is the model directory itself; write the mesh elsewhere")
-    if (out / MANIFEST_NAME).is_file() and read_manifest(out)["artifact"] != "mesh":
-        raise InputError(f"--out {out}: holds a {read_manifest(out)['artifact']} artifact, which export would replace; "
-                         "choose another --out")
+    output_inputs = [model_path, options.pose]
+    check_output_target(out, "mesh", output_inputs)
 
     tick = time.perf_counter()
     model = load_model(model_path, device)
@@ -597,7 +595,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     marched_records: list[dict] = []
     map_records: list[dict] = []
     glb_info = None
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="mesh", inputs=output_inputs) as tmp:
         tick = time.perf_counter()
         for fmt in (f for f in options.formats if f in ("ply", "obj")):
             _write_mesh(tmp / f"canonical.{fmt}", vertices, faces, colors)
