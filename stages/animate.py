@@ -47,7 +47,7 @@ from igavatar.render.cameras import resize_intrinsics, turntable_cameras
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import IMAGE_BYTES_PER_PIXEL, peak_cuda_bytes, peak_ram_bytes, require_marching_memory, require_memory
 from stages.train import resolve_device
 
 CAMERAS = ("turntable", "front", "capture")
@@ -449,10 +449,14 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
     motion_path = Path(options.motion) if options.motion not in MOTION_NAMES else None
     output_inputs = [Path(options.model), motion_path, options.camera_file, options.dataset]
     check_output_target(out, "animation", output_inputs)
+    require_memory(options.resolution**2 * IMAGE_BYTES_PER_PIXEL, f"--resolution {options.resolution} (each rendered frame)")
     device = resolve_device(options.device)
     build_kernels(device, progress)
     if not (Path(options.model) / "manifest.json").is_file():
         raise ArtifactError(f"{options.model}: no model artifact there; run `igavatar train` first, or pass --model DIR")
+    if options.meshes:
+        require_marching_memory(read_manifest(Path(options.model))["data"]["canonical_box"], options.mesh_resolution,
+                                f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     model = load_model(Path(options.model), device)
     motion = resolve_motion(model, options, progress)
     n_frames = motion.local_rotations.shape[0]

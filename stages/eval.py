@@ -73,7 +73,7 @@ from igavatar.model.render_avatar import render_avatar_view
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import peak_cuda_bytes, peak_ram_bytes, require_marching_memory
 from stages.train import resolve_device
 
 #: Scan formats of a --gt folder; an imported capture (X-Humans) names its own scans (.pkl).
@@ -562,6 +562,9 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     dataset_dir = resolve_dataset(model_dir, model_manifest, options.dataset)
     dataset_manifest = read_artifact(dataset_dir, expected="dataset")
     check_output_target(out, "report", [model_dir, dataset_dir, options.gt])
+    if options.geometry:
+        require_marching_memory(model_manifest["data"]["canonical_box"], options.mesh_resolution,
+                                f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     frames = load_test_frames(dataset_dir)
     matching: ScanMatching | None = None
     gt_dir: Path | None = None

@@ -215,7 +215,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                             "that the poses and cameras put the body in view, or give masks"
                         )
                 if not mask.any():
-                    raise InputError(f"{capture.mask_path(frame)}: the mask is empty (no subject pixels)")
+                    raise InputError(
+                        f"{capture.mask_path(frame)}: the mask of frame {frame} is empty (no subject pixels); "
+                        "give a mask with the subject in white (255), drop the frame from capture.json, "
+                        "or remove masks/ to have them estimated"
+                    )
                 cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
                 if i in sheet_frames:

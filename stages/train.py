@@ -42,7 +42,7 @@ from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_sampl
 from igavatar.training.trainer import Trainer
 from stages.kernels import build_kernels
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
 
 
 class TrainingInterrupted(IgavatarError):
@@ -251,6 +251,8 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     device = resolve_device(options.device)
     build_kernels(device, progress)
     config = resolve_config(options)
+    require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
+                   f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
     torch.manual_seed(config.seed)
     subject = dict(np.load(dataset / "subject.npz"))
     data = load_training_data(dataset, manifest)
