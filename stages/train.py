@@ -248,6 +248,8 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     started = time.perf_counter()
     dataset = Path(options.dataset)
     manifest = read_artifact(dataset, expected="dataset")
+    out = Path(options.out)
+    check_output_target(out, "model", [dataset])  # before minutes of training, not after
     device = resolve_device(options.device)
     build_kernels(device, progress)
     config = resolve_config(options)
@@ -258,8 +260,6 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     data = load_training_data(dataset, manifest)
     avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
 
-    out = Path(options.out)
-    check_output_target(out, "model", [dataset])
     work = work_directory(out)
     work.mkdir(parents=True, exist_ok=True)
     checkpoint = work / "checkpoint.npz"

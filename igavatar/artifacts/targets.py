@@ -60,7 +60,7 @@ def check_output_target(target: Path, kind: str, inputs: Iterable[Path] = ()) ->
     except ArtifactError:
         raise UnsafeOutputError(
             f"--out {target}: is a non-empty folder that is not an igavatar artifact (no valid manifest.json); "
-            f"igavatar never replaces it: {how}"
+            f"refusing to replace it: {how}"
         ) from None
     if manifest["artifact"] != kind:
         raise UnsafeOutputError(
