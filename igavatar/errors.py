@@ -30,3 +30,24 @@ class NotAvailableError(IgavatarError):
     """A feature that this version of igavatar does not implement yet."""
 
     exit_code = 4
+
+
+class UnsafeOutputError(InputError):
+    """An output path holds something igavatar must not replace (user files, an input, another kind)."""
+
+
+class StorageError(IgavatarError):
+    """The file system refused a write or read: read-only, no permission, no space, path too long."""
+
+    exit_code = 5
+
+
+class ResourceLimitError(InputError):
+    """A size the user chose (resolution, rays, samples, image size) needs more memory than there is."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C would be so that every stage cleans up (and train checkpoints) alike.
+
+    A KeyboardInterrupt subclass on purpose: code that already handles Ctrl-C handles this too.
+    """

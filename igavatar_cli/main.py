@@ -10,7 +10,9 @@ user mistakes. Heavy imports (torch, anny) happen inside commands so `--help` st
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import wraps
 from pathlib import Path
 from typing import Annotated, Optional
@@ -19,7 +21,8 @@ import typer
 from rich.console import Console
 
 from igavatar import __version__
-from igavatar.errors import IgavatarError, NotAvailableError
+from igavatar.artifacts.storage import storage_message
+from igavatar.errors import IgavatarError, NotAvailableError, ResourceLimitError, StorageError, Terminated
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
 from stages.resources import tune_host_allocator
 
@@ -54,19 +57,59 @@ def _main(
     tune_host_allocator()
 
 
+def _error_line(message: str) -> None:
+    # markup=False for the message: paths and shapes may contain [brackets].
+    err_console.print("[bold red]error:[/] ", end="", highlight=False)
+    err_console.print(message, markup=False, highlight=False, soft_wrap=True)
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (kill, a batch scheduler, CI's timeout) raises Terminated, which stages handle like Ctrl-C."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread (embedded use): leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def user_errors(func: Callable) -> Callable:
-    """Turn library errors and Ctrl-C into one line and an exit code (never a traceback)."""
+    """Turn library errors, Ctrl-C, SIGTERM and fixable disk/memory failures into one line and an exit code."""
 
     @wraps(func)
     def wrapper(*args, **kwargs):
         try:
-            return func(*args, **kwargs)
+            with _sigterm_as_interrupt():
+                return func(*args, **kwargs)
         except IgavatarError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            _error_line(str(exc))
             raise typer.Exit(exc.exit_code) from None
+        except Terminated:
+            err_console.print("[yellow]terminated[/] (SIGTERM): nothing half-written was kept; earlier artifacts are untouched")
+            raise typer.Exit(143) from None
         except KeyboardInterrupt:
             err_console.print("[yellow]interrupted[/]: nothing half-written was kept; earlier artifacts are untouched")
             raise typer.Exit(130) from None
+        except OSError as exc:
+            # A safety net: stages translate these themselves; one that slipped through is still the
+            # user's disk, not a bug, when it is one of the fixable kinds.
+            message = storage_message(exc, Path.cwd())
+            if message is None:
+                raise
+            _error_line(message)
+            raise typer.Exit(StorageError.exit_code) from None
+        except MemoryError:
+            _error_line("out of memory; lower the sizes you chose (--resolution, --rays, --samples, image sizes) "
+                        "or free memory, then run the command again")
+            raise typer.Exit(ResourceLimitError.exit_code) from None
 
     return wrapper
 
@@ -106,7 +149,7 @@ def synth(
     json_out: JsonOut = False,
 ) -> None:
     """Make a synthetic monocular capture (capture v1) of a clothed, textured Anny subject."""
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.synth import SynthOptions, run_synth
 
     options = SynthOptions(
@@ -114,7 +157,7 @@ def synth(
         test_frames=test_frames, holdout_frames=holdout_frames, phenotype=tuple(phenotype or ()), garment=garment, texture=texture,
         seed=seed, anny_cache=anny_cache, force=force,
     )
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_synth(options, progress=progress)
     _print_summary(summary, json_out)
 
@@ -144,7 +187,7 @@ def preprocess(
     json_out: JsonOut = False,
 ) -> None:
     """Turn a capture (images, masks, cameras, body poses) into a dataset artifact that `train` reads."""
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.preprocess import PreprocessOptions, parse_grid_resolution, run_preprocess
 
     layout = RunLayout(run_dir)
@@ -153,7 +196,7 @@ def preprocess(
         max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution), anny_cache=anny_cache,
         smpl_model=smpl_model, force=force,
     )
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_preprocess(options, progress=progress)
     _print_summary(summary, json_out)
 
@@ -185,7 +228,7 @@ def train(
     json_out: JsonOut = False,
 ) -> None:
     """Train the hash-grid SDF avatar on a dataset artifact and write a model artifact."""
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.train import TrainOptions, run_train
 
     layout = RunLayout(run_dir)
@@ -195,7 +238,7 @@ def train(
         sdf_encoding=sdf_encoding,
         seed=seed, device=device, resume=resume,
     )
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_train(options, progress=progress)
     _print_summary(summary, json_out)
 
@@ -234,7 +277,7 @@ def export(
     json_out: JsonOut = False,
 ) -> None:
     """Extract the canonical mesh (PLY/OBJ/rigged GLB) and, with --pose, posed meshes in world coordinates."""
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.export import ExportOptions, parse_formats, run_export
 
     layout = RunLayout(run_dir)
@@ -244,7 +287,7 @@ def export(
         target_faces=target_faces, pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
         posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
     )
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_export(options, progress=progress)
     _print_summary(summary, json_out)
 
@@ -279,7 +322,7 @@ def animate(
 ) -> None:
     """Render the avatar driven by a motion: PNG frames, an mp4 and optionally posed meshes per frame."""
     from igavatar.errors import InputError
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.animate import AnimateOptions, run_animate
 
     if motion_arg is not None and motion is not None and motion_arg != motion:
@@ -291,7 +334,7 @@ def animate(
         dataset=dataset, revolutions=revolutions, resolution=resolution, samples=samples, meshes=meshes,
         mesh_resolution=mesh_resolution, device=device, anny_cache=anny_cache,
     )
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_animate(options, progress=progress)
     _print_summary(summary, json_out)
 
@@ -332,7 +375,7 @@ def eval_(
     json_out: JsonOut = False,
 ) -> None:
     """Compare the posed avatar with ground-truth scans (Chamfer, normal consistency, IoU) and test images (PSNR, SSIM)."""
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.eval import EvalOptions, run_eval
 
     layout = RunLayout(run_dir)
@@ -342,7 +385,7 @@ def eval_(
         iou_open_meshes=iou_open_meshes, image_scale=image_scale, samples_per_ray=samples, image_frames=image_frames,
         seed=seed, device=device,
     )
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_eval(options, progress=progress)
     _print_summary(summary, json_out)
 
@@ -367,12 +410,12 @@ def demo(
     """
     from rich.table import Table
 
-    from igavatar_cli.progress import RichProgress
+    from igavatar_cli.progress import progress_sink
     from stages.demo import DemoOptions, run_demo
 
     options = DemoOptions(run_dir=run_dir, preset=preset, steps=steps, resolution=resolution,
                           train_frames=train_frames, test_frames=test_frames, device=device, seed=seed)
-    with RichProgress(err_console, quiet=quiet or json_out) as progress:
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_demo(options, progress=progress)
     if json_out:
         _print_summary(summary, True)

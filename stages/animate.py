@@ -33,6 +33,7 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact, read_manifest
 from igavatar.body.motions import MOTION_NAMES, SKELETON_KINDS, body_to_world, motion_by_name, walk
 from igavatar.body.rotations import matrix_to_axis_angle
@@ -46,7 +47,7 @@ from igavatar.render.cameras import resize_intrinsics, turntable_cameras
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import IMAGE_BYTES_PER_PIXEL, peak_cuda_bytes, peak_ram_bytes, require_marching_memory, require_memory
 from stages.train import resolve_device
 
 CAMERAS = ("turntable", "front", "capture")
@@ -444,10 +445,18 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         raise InputError(f"--samples {options.samples}: expected at least 1")
     if options.meshes and options.mesh_resolution < 16:
         raise InputError(f"--mesh-resolution {options.mesh_resolution}: expected at least 16")
+    out = Path(options.out)
+    motion_path = Path(options.motion) if options.motion not in MOTION_NAMES else None
+    output_inputs = [Path(options.model), motion_path, options.camera_file, options.dataset]
+    check_output_target(out, "animation", output_inputs)
+    require_memory(options.resolution**2 * IMAGE_BYTES_PER_PIXEL, f"--resolution {options.resolution} (each rendered frame)")
     device = resolve_device(options.device)
     build_kernels(device, progress)
     if not (Path(options.model) / "manifest.json").is_file():
         raise ArtifactError(f"{options.model}: no model artifact there; run `igavatar train` first, or pass --model DIR")
+    if options.meshes:
+        require_marching_memory(read_manifest(Path(options.model))["data"]["canonical_box"], options.mesh_resolution,
+                                f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     model = load_model(Path(options.model), device)
     motion = resolve_motion(model, options, progress)
     n_frames = motion.local_rotations.shape[0]
@@ -474,11 +483,10 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         surface = _canonical_surface(model, options.mesh_resolution)
         timings["canonical_mesh_s"] = time.perf_counter() - tick
 
-    out = Path(options.out)
     width_digits = max(4, len(str(n_frames - 1)))
     coverage: list[float] = []
     render_seconds = mesh_seconds = render_cpu_seconds = 0.0
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="animation", inputs=output_inputs) as tmp:
         (tmp / "frames").mkdir()
         if surface is not None:
             (tmp / "meshes").mkdir()

@@ -22,6 +22,9 @@ from stages.synth import SynthOptions, run_synth
 from stages.train import TrainOptions, run_train
 
 
+#: The stages `run_demo` runs, in order.
+DEMO_STAGES = ("synth", "preprocess", "train", "export", "animate", "eval")
+
 
 @dataclass(frozen=True)
 class DemoOptions:
@@ -46,10 +49,14 @@ def run_demo(options: DemoOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     stages: dict[str, dict] = {}
 
     def timed(name: str, call) -> dict:
+        # A line per stage start and end, so a log without a TTY (nohup, CI, > log.txt) shows where it is.
+        number = len(stages) + 1
+        progress.status(f"demo stage {number}/{len(DEMO_STAGES)} {name}: started")
         started = time.perf_counter()
         result = call()
         result["stage_seconds"] = round(time.perf_counter() - started, 1)
         stages[name] = result
+        progress.status(f"demo stage {number}/{len(DEMO_STAGES)} {name}: done in {result['stage_seconds']} s")
         return result
 
     timed("synth", lambda: run_synth(SynthOptions(

@@ -44,6 +44,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, validate_against
 from igavatar.capture.capture_v1 import CAPTURE_FILE
 from igavatar.capture.images import resize_image, resize_mask, scale_intrinsics
@@ -72,7 +73,7 @@ from igavatar.model.render_avatar import render_avatar_view
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import peak_cuda_bytes, peak_ram_bytes, require_marching_memory
 from stages.train import resolve_device
 
 #: Scan formats of a --gt folder; an imported capture (X-Humans) names its own scans (.pkl).
@@ -560,6 +561,10 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     model_manifest = read_artifact(model_dir, expected="model")
     dataset_dir = resolve_dataset(model_dir, model_manifest, options.dataset)
     dataset_manifest = read_artifact(dataset_dir, expected="dataset")
+    check_output_target(out, "report", [model_dir, dataset_dir, options.gt])
+    if options.geometry:
+        require_marching_memory(model_manifest["data"]["canonical_box"], options.mesh_resolution,
+                                f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     frames = load_test_frames(dataset_dir)
     matching: ScanMatching | None = None
     gt_dir: Path | None = None
@@ -619,7 +624,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
 
     records = []
     worst: tuple[float, str, np.ndarray, np.ndarray] | None = None  # (CD-L1, frame, posed vertices, error mm)
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="report", inputs=[model_dir, dataset_dir, gt_dir]) as tmp:
         with progress.task("evaluating test frames", total=len(frames.names)) as advance:
             for i, name in enumerate(frames.names):
                 record: dict[str, Any] = {"frame": name, "scan": None, "values": {k: None for k in METRIC_KEYS},

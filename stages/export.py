@@ -49,6 +49,7 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import (
     MANIFEST_NAME,
     InputRecord,
@@ -72,7 +73,7 @@ from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import IMAGE_BYTES_PER_PIXEL, peak_cuda_bytes, peak_ram_bytes, require_marching_memory, require_memory
 from stages.train import resolve_device
 
 FORMATS = ("ply", "obj", "glb")
@@ -148,6 +149,15 @@ def parse_formats(text: str) -> tuple[str, ...]:
     if unknown or not formats:
         raise InputError(f"--formats {text!r}: expected a comma-separated subset of {', '.join(FORMATS)}")
     return formats
+
+
+def _check_memory(options: ExportOptions, model_path: Path) -> None:
+    """Refuse a --resolution or --exr-size this machine cannot hold, before the model is even loaded."""
+    # The marching-cubes grid and the EXR maps live in host memory whatever --device says.
+    require_marching_memory(read_manifest(model_path)["data"]["canonical_box"], options.resolution,
+                            f"--resolution {options.resolution} (the marching-cubes grid)")
+    if options.exr:
+        require_memory(options.exr_size**2 * IMAGE_BYTES_PER_PIXEL, f"--exr-size {options.exr_size} (each depth/normal map)")
 
 
 def _check_options(options: ExportOptions) -> None:
@@ -548,11 +558,9 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     device = resolve_device(options.device)
     build_kernels(device, progress)
     out, model_path = Path(options.out), Path(options.model)
-    if model_path.resolve() == out.resolve():
-        raise InputError(f"--out {out}: is the model directory itself; write the mesh elsewhere")
-    if (out / MANIFEST_NAME).is_file() and read_manifest(out)["artifact"] != "mesh":
-        raise InputError(f"--out {out}: holds a {read_manifest(out)['artifact']} artifact, which export would replace; "
-                         "choose another --out")
+    output_inputs = [model_path, options.pose]
+    check_output_target(out, "mesh", output_inputs)
+    _check_memory(options, model_path)
 
     tick = time.perf_counter()
     model = load_model(model_path, device)
@@ -597,7 +605,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     marched_records: list[dict] = []
     map_records: list[dict] = []
     glb_info = None
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="mesh", inputs=output_inputs) as tmp:
         tick = time.perf_counter()
         for fmt in (f for f in options.formats if f in ("ply", "obj")):
             _write_mesh(tmp / f"canonical.{fmt}", vertices, faces, colors)

@@ -34,6 +34,7 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact, read_manifest, sha256_json
 from igavatar.body.capsules import capsule_prior
 from igavatar.body.skeleton import linear_blend_skinning
@@ -153,6 +154,8 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     inputs = _input_records(capture, options.smpl_model)
     input_json = [record.to_json() for record in inputs]
     out = Path(options.out)
+    output_inputs = [capture.root, options.smpl_model]
+    check_output_target(out, "dataset", output_inputs)
     if not options.force and _up_to_date(out, config, input_json):
         return {"dataset": str(out), "skipped": "inputs and options unchanged (use --force to redo)"}
 
@@ -188,7 +191,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     sheet_frames = set(np.linspace(0, len(capture.frames) - 1, min(CONTACT_SHEET_FRAMES, len(capture.frames))).round().astype(int))
     sheet_items = []
 
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="dataset", inputs=output_inputs) as tmp:
         (tmp / "images").mkdir()
         (tmp / "masks").mkdir()
         tick = time.perf_counter()
@@ -212,7 +215,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                             "that the poses and cameras put the body in view, or give masks"
                         )
                 if not mask.any():
-                    raise InputError(f"{capture.mask_path(frame)}: the mask is empty (no subject pixels)")
+                    raise InputError(
+                        f"{capture.mask_path(frame)}: the mask of frame {frame} is empty (no subject pixels); "
+                        "give a mask with the subject in white (255), drop the frame from capture.json, "
+                        "or remove masks/ to have them estimated"
+                    )
                 cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
                 if i in sheet_frames:

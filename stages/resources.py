@@ -61,3 +61,72 @@ def tune_host_allocator() -> dict[str, int] | None:
     # mallopt returns 1 when it accepts a setting.
     applied = {name: value for name, (parameter, value) in _MALLOPT.items() if mallopt(parameter, value) == 1}
     return applied or None
+
+
+#: Rough bytes per ray sample of one training step (encodings, MLP activations and their
+#: gradients, the eikonal double backward): the `cpu` preset's ~98k samples peak near 2 GB of RAM
+#: with the dataset loaded, so 16 KiB is a floor, never an over-estimate that refuses a good run.
+TRAIN_BYTES_PER_SAMPLE = 16 << 10
+#: Bytes per rendered pixel kept for a whole image (rgb, normal, depth, opacity and the uint8 copies).
+IMAGE_BYTES_PER_PIXEL = 64
+
+
+def available_memory_bytes(device: "torch.device | str | None" = None) -> int | None:  # noqa: F821
+    """Memory a new allocation can use now: free GPU memory on CUDA, else MemAvailable (Linux) or RAM."""
+    if device is not None and str(device).startswith("cuda"):
+        import torch
+
+        if torch.cuda.is_available():
+            free, _total = torch.cuda.mem_get_info()
+            return int(free)
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _gib(nbytes: float) -> str:
+    return f"{nbytes / 2**30:.1f} GiB"
+
+
+def require_memory(nbytes: float, what: str, device: "torch.device | str | None" = None) -> None:  # noqa: F821
+    """Refuse a size the user chose before allocating it, when it needs more memory than there is.
+
+    Args:
+        nbytes: an estimate (a floor) of the bytes the choice needs.
+        what: the option and value, e.g. '--resolution 20000 (marching cubes)'.
+        device: where it is allocated (CUDA: free GPU memory; else host RAM).
+    Raises:
+        ResourceLimitError naming the option, the estimate and the limit.
+    """
+    from igavatar.errors import ResourceLimitError
+
+    limit = available_memory_bytes(device)
+    if limit is None or nbytes <= limit:
+        return
+    where = "free GPU memory" if device is not None and str(device).startswith("cuda") else "available memory"
+    raise ResourceLimitError(
+        f"{what}: needs about {_gib(nbytes)}, more than the {_gib(limit)} of {where} on this machine; "
+        "choose a smaller value"
+    )
+
+
+def require_marching_memory(canonical_box, resolution: int, what: str) -> None:
+    """`require_memory` for marching cubes at `resolution` over a canonical box ((2, 3) nested lists or array).
+
+    The grid lives in host memory whatever the device; the box is padded as export pads it (2 %).
+    """
+    import numpy as np
+
+    from igavatar.mesh.extract import marching_cubes_bytes
+
+    box = np.asarray(canonical_box, dtype=np.float64)
+    pad = 0.02 * float((box[1] - box[0]).max())
+    require_memory(marching_cubes_bytes(box[0] - pad, box[1] + pad, resolution), what)

@@ -23,12 +23,12 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import MANIFEST_NAME, build_manifest, read_artifact
 from igavatar.body.anny_body import ANNY_PHENOTYPE_LABELS, AnnyBody, load_anny, resolve_phenotype
 from igavatar.body.motions import Motion, motion_by_name, turntable, walk
 from igavatar.body.rotations import rigid_matrix
 from igavatar.body.skeleton import forward_kinematics, linear_blend_skinning
-from igavatar.capture.capture_v1 import CAPTURE_FILE
 from igavatar.errors import ArtifactError, InputError
 from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject, vertex_normals
 from igavatar.synth.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
@@ -261,17 +261,6 @@ def _shader(subject: ClothedSubject, texture: SolidTexture, normals_world: np.nd
     return shade
 
 
-def _check_target(out: Path) -> None:
-    """Refuse to replace anything but an earlier capture (or an empty directory) at `out`."""
-    if out.is_file():
-        raise InputError(f"--out {out}: is a file; give a directory for the capture")
-    if out.is_dir() and any(out.iterdir()):
-        if not ((out / MANIFEST_NAME).is_file() or (out / CAPTURE_FILE).is_file()):
-            raise InputError(
-                f"--out {out}: a non-empty directory that is not a capture; refusing to replace it (choose another path)"
-            )
-
-
 def _existing_matches(out: Path, config: dict) -> bool:
     if not (out / MANIFEST_NAME).is_file():
         return False
@@ -291,7 +280,7 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     _check_options(options)
     config = resolved_config(options)
     out = Path(options.out)
-    _check_target(out)
+    check_output_target(out, "capture")
     if not options.force and _existing_matches(out, config):
         return {"path": str(out), "skipped": True, "reason": "a capture with the same config exists (use --force to redo)"}
 
@@ -346,7 +335,7 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     }
 
     render_started = time.perf_counter()
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="capture") as tmp:
         for sub in ("images", "masks", "scans"):
             (tmp / sub).mkdir()
         with progress.task("rendering frames", total=len(frames)) as advance:

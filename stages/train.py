@@ -29,8 +29,10 @@ import numpy as np
 import torch
 
 from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
+from igavatar.artifacts.storage import storage_errors
+from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, sha256_file, sha256_json
-from igavatar.errors import IgavatarError, InputError
+from igavatar.errors import IgavatarError, InputError, Terminated
 from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import load_state, save_state
@@ -40,7 +42,7 @@ from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_sampl
 from igavatar.training.trainer import Trainer
 from stages.kernels import build_kernels
 from stages.progress import NULL_PROGRESS, ProgressSink
-from stages.resources import peak_cuda_bytes, peak_ram_bytes
+from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
 
 
 class TrainingInterrupted(IgavatarError):
@@ -206,29 +208,81 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     atomic_write_bytes(path, data.tobytes())
 
 
+def work_directory(out: Path) -> Path:
+    """Where a run writing `out` keeps its checkpoints: `<out>.work/` beside it."""
+    return out.with_name(out.name + ".work")
+
+
+def _config_differences(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """'key: old -> new' for every leaf of two resolved configs that differs (nested keys dotted)."""
+    differences = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            differences += _config_differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            differences.append(f"{prefix}{key}: {a} -> {b}")
+    return differences
+
+
+def _resume_mismatch(checkpoint: Path, state: dict, config_json: dict, dataset_sha: str) -> str:
+    """Why a checkpoint does not belong to this run, naming the options that differ."""
+    reasons = []
+    if "config" in state:
+        differences = _config_differences(json.loads(state["config"]), config_json)
+        if differences:
+            reasons.append("options differ (checkpoint -> now): " + "; ".join(differences[:4])
+                           + ("; ..." if len(differences) > 4 else ""))
+        if state.get("dataset_sha256") not in (None, dataset_sha):
+            reasons.append("the dataset changed since the checkpoint")
+    detail = ", ".join(reasons) or "it was written with another configuration or dataset"
+    return (f"--resume: {checkpoint} does not match this run: {detail}; "
+            "repeat the interrupted run's options, or start without --resume")
+
+
 def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Train an avatar on a dataset artifact and write the model artifact.
 
-    Raises InputError/ArtifactError for bad inputs and TrainingInterrupted on Ctrl-C (after
-    writing a checkpoint).
+    Raises InputError/ArtifactError for bad inputs, StorageError when the disk refuses a write,
+    and TrainingInterrupted on Ctrl-C or SIGTERM (after writing a checkpoint). A run that fails
+    before any checkpoint exists leaves no `<out>.work/` behind (only a checkpoint is resumable).
     """
+    work = work_directory(Path(options.out))
+    checkpoint = work / "checkpoint.npz"
+    if options.resume and not checkpoint.is_file():
+        raise InputError(f"--resume: no checkpoint at {checkpoint}; start without --resume")
+    existed = work.exists()
+    try:
+        with storage_errors(work):
+            return _run_train(options, progress)
+    except BaseException:
+        if not existed and not checkpoint.is_file():
+            shutil.rmtree(work, ignore_errors=True)
+        raise
+
+
+def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     started = time.perf_counter()
     dataset = Path(options.dataset)
     manifest = read_artifact(dataset, expected="dataset")
+    out = Path(options.out)
+    check_output_target(out, "model", [dataset])  # before minutes of training, not after
     device = resolve_device(options.device)
     build_kernels(device, progress)
     config = resolve_config(options)
+    require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
+                   f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
     torch.manual_seed(config.seed)
     subject = dict(np.load(dataset / "subject.npz"))
     data = load_training_data(dataset, manifest)
     avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
 
-    out = Path(options.out)
-    work = out.with_name(out.name + ".work")
+    work = work_directory(out)
     work.mkdir(parents=True, exist_ok=True)
     checkpoint = work / "checkpoint.npz"
     config_json = config_to_json(config)
-    run_key = sha256_json({"config": config_json, "dataset": sha256_file(dataset / "manifest.json")})
+    dataset_sha = sha256_file(dataset / "manifest.json")
+    run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
 
     shape_state, shape_seconds = _shape_initialise(
         avatar, config, dataset, subject, [work / "shape_init.npz", out / "shape_init.npz"], progress
@@ -237,14 +291,9 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     trainer = Trainer(config, data, avatar, device)
 
     if options.resume:
-        if not checkpoint.is_file():
-            raise InputError(f"--resume: no checkpoint at {checkpoint}; start without --resume")
         state = load_state(checkpoint)
         if state.get("run_key") != run_key:
-            raise InputError(
-                f"--resume: {checkpoint} was written with another configuration or dataset; "
-                "use the same options, or start without --resume"
-            )
+            raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
         trainer.load_state_dict(state["trainer"])
         progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
 
@@ -256,7 +305,8 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
         validation_frames.append(test_indices[0])
 
     def save_checkpoint() -> None:
-        save_state(checkpoint, {"run_key": run_key, "trainer": trainer.state_dict()})
+        save_state(checkpoint, {"run_key": run_key, "config": json.dumps(config_json), "dataset_sha256": dataset_sha,
+                                "trainer": trainer.state_dict()})
         buffer = io.StringIO()
         if log_rows:
             writer = csv.DictWriter(buffer, fieldnames=list(log_rows[0]))
@@ -280,12 +330,14 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
                         _write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
                 rate = trainer.step / max(trainer.seconds, 1e-9)
                 advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         save_checkpoint()
-        raise TrainingInterrupted(
-            f"training interrupted at step {trainer.step}; checkpoint saved to {checkpoint} "
-            "(continue with `igavatar train --resume` and the same options)"
-        ) from None
+        interrupted = TrainingInterrupted(
+            f"training {'terminated (SIGTERM)' if isinstance(exc, Terminated) else 'interrupted'} at step {trainer.step}; "
+            f"checkpoint saved to {checkpoint} (continue with `igavatar train --resume` and the same options)"
+        )
+        interrupted.exit_code = 143 if isinstance(exc, Terminated) else 130  # the shell's 128 + signal number
+        raise interrupted from None
     save_checkpoint()
 
     train_seconds = trainer.seconds
@@ -293,7 +345,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples) for i in validation_frames}
     render_seconds = time.perf_counter() - tick
 
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, kind="model", inputs=[dataset]) as tmp:
         save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
         shutil.copyfile(dataset / "subject.npz", tmp / "subject.npz")
         save_state(tmp / "shape_init.npz", shape_state)

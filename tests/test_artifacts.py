@@ -21,7 +21,7 @@ DATASET_DATA = {
 
 
 def _write_dataset(target: Path, payload: bytes = b"abc", inputs=()) -> dict:
-    with atomic_directory(target) as tmp:
+    with atomic_directory(target, kind="dataset") as tmp:
         (tmp / "sub").mkdir()
         (tmp / "sub" / "x.bin").write_bytes(payload)
         return build_manifest("dataset", tmp, stage="preprocess", config={"k": 1}, inputs=list(inputs), data=DATASET_DATA)
@@ -98,7 +98,7 @@ def test_manifest_schema_violation_names_the_field(tmp_path):
 def test_failure_inside_block_keeps_the_previous_artifact(tmp_path):
     _write_dataset(tmp_path / "ds", payload=b"old")
     with pytest.raises(RuntimeError):
-        with atomic_directory(tmp_path / "ds") as tmp:
+        with atomic_directory(tmp_path / "ds", kind="dataset") as tmp:
             (tmp / "partial.bin").write_bytes(b"half")
             raise RuntimeError("crash mid-stage")
     assert (tmp_path / "ds" / "sub" / "x.bin").read_bytes() == b"old"
@@ -110,7 +110,7 @@ def test_failure_inside_block_keeps_the_previous_artifact(tmp_path):
 def test_keyboard_interrupt_inside_block_keeps_the_previous_artifact(tmp_path):
     _write_dataset(tmp_path / "ds", payload=b"old")
     with pytest.raises(KeyboardInterrupt):
-        with atomic_directory(tmp_path / "ds"):
+        with atomic_directory(tmp_path / "ds", kind="dataset"):
             raise KeyboardInterrupt
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
     assert (tmp_path / "ds" / "sub" / "x.bin").read_bytes() == b"old"

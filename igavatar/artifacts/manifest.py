@@ -13,6 +13,7 @@ import datetime as _dt
 import hashlib
 import json
 import platform
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,28 @@ PRODUCED_BY: dict[str, str] = {
     "animation": "igavatar animate",
     "report": "igavatar eval",
 }
+
+
+#: The command (and its input option) that makes each kind from the kind before it, suggested when
+#: a user passes the earlier artifact where the later one is needed.
+MADE_FROM: dict[str, tuple[str, str]] = {
+    "dataset": ("capture", "igavatar preprocess --capture"),
+    "model": ("dataset", "igavatar train --dataset"),
+    "mesh": ("model", "igavatar export --model"),
+    "animation": ("model", "igavatar animate --model"),
+    "report": ("model", "igavatar eval --model"),
+}
+
+#: A raw capture v1 has this file but no manifest.
+_CAPTURE_FILE = "capture.json"
+
+
+def _make_it_hint(directory: Path, kind: str, expected: str) -> str:
+    """'; make a dataset from it with `igavatar preprocess --capture DIR`' when `kind` is what makes `expected`."""
+    source, command = MADE_FROM.get(expected, (None, None))
+    if source != kind:
+        return ""
+    return f"; make a {expected} from it with `{command} {directory}`"
 
 
 def sha256_file(path: Path, chunk_bytes: int = 1 << 20) -> str:
@@ -174,6 +197,11 @@ def read_artifact(directory: Path, expected: str | None = None, *, check_hashes:
         ArtifactError naming the file and the stage that makes the artifact.
     """
     directory = Path(directory)
+    if expected not in (None, "capture") and not (directory / MANIFEST_NAME).is_file() and (directory / _CAPTURE_FILE).is_file():
+        raise ArtifactError(
+            f"{directory} is a capture (capture.json, no manifest), but this step needs a {expected} artifact"
+            + (_make_it_hint(directory, "capture", expected) or f" made by `{PRODUCED_BY[expected]}`")
+        )
     manifest = read_manifest(directory)
     kind = manifest["artifact"]
     maker = PRODUCED_BY[kind]
@@ -181,6 +209,7 @@ def read_artifact(directory: Path, expected: str | None = None, *, check_hashes:
         raise ArtifactError(
             f"{directory} is a {kind} artifact (made by `{maker}`), "
             f"but this step needs a {expected} artifact made by `{PRODUCED_BY[expected]}`"
+            + _make_it_hint(directory, kind, expected)
         )
     major = manifest["schema_version"].split(".")[0]
     current_major = SCHEMA_VERSIONS[kind].split(".")[0]
@@ -199,7 +228,38 @@ def read_artifact(directory: Path, expected: str | None = None, *, check_hashes:
                 raise ArtifactError(
                     f"{path}: sha256 mismatch (the file was modified or corrupted); re-run `{maker}`"
                 )
+            problem = container_problem(path)
+            if problem is not None:
+                raise ArtifactError(f"{path}: corrupt {kind} artifact file ({problem}); re-run `{maker}`")
     return manifest
+
+
+def container_problem(path: Path) -> str | None:
+    """Why a file with a matching hash still cannot be read (a truncated .npz or .png), or None.
+
+    The hash only proves the file is the one the manifest lists; a manifest rewritten after the
+    file was damaged lists the damage. Readers would then fail deep inside numpy or OpenCV, so
+    the containers are checked here, cheaply: every member of an npz (zip CRCs) and a PNG's
+    signature and end chunk.
+    """
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        try:
+            with zipfile.ZipFile(path) as archive:
+                bad = archive.testzip()
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+            return f"not a readable npz: {exc}"
+        return None if bad is None else f"npz member {bad} fails its CRC"
+    if suffix == ".png":
+        with open(path, "rb") as f:
+            head = f.read(8)
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - 12))
+            tail = f.read()
+        if head != b"\x89PNG\r\n\x1a\n" or b"IEND" not in tail:
+            return "not a complete PNG (truncated or overwritten)"
+    return None
 
 
 def host_description() -> str:

@@ -115,6 +115,14 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
     return read_npz(path)
 
 
+def _at_frame(frames: list[str], bad: np.ndarray) -> str:
+    """' at frame NAME (index i; k frames in all)' for the first frame whose entries of `bad` are set."""
+    per_frame = np.asarray(bad).reshape(len(frames), -1).any(axis=1)
+    first = int(np.argmax(per_frame))
+    count = int(per_frame.sum())
+    return f" at frame {frames[first]} (index {first}" + (f"; {count} frames in all)" if count > 1 else ")")
+
+
 def _check_shape(path: Path, key: str, array: np.ndarray, expected: tuple, sizes: dict[str, int]) -> None:
     shape_text = "(" + ", ".join(str(e) for e in expected) + ")"
     if array.ndim != len(expected):
@@ -204,11 +212,18 @@ def read_capture_v1(root: Path) -> CaptureV1:
             raise InputError(f"{cam_path}: key '{key}' missing (expected K, w2c, height, width, optional dist)")
     K = _per_frame(cam_path, "K", cams["K"], n_frames, (3, 3))
     w2c = _per_frame(cam_path, "w2c", cams["w2c"], n_frames, (4, 4))
-    if not np.allclose(w2c[:, 3], [0, 0, 0, 1], atol=1e-6):
-        raise InputError(f"{cam_path}: key 'w2c' last row must be [0, 0, 0, 1]")
+    if not np.all(np.isfinite(w2c)):
+        raise InputError(f"{cam_path}: key 'w2c' holds NaN or infinite values{_at_frame(frames, ~np.isfinite(w2c))}")
+    bad_row = ~np.all(np.isclose(w2c[:, 3], [0, 0, 0, 1], atol=1e-6), axis=-1)
+    if bad_row.any():
+        raise InputError(f"{cam_path}: key 'w2c' last row must be [0, 0, 0, 1]{_at_frame(frames, bad_row)}")
     rot = w2c[:, :3, :3]
-    if not np.allclose(rot @ rot.transpose(0, 2, 1), np.eye(3), atol=1e-4):
-        raise InputError(f"{cam_path}: key 'w2c' rotation blocks are not orthonormal")
+    not_rigid = ~np.all(np.isclose(rot @ rot.transpose(0, 2, 1), np.eye(3), atol=1e-4), axis=(-2, -1))
+    if not_rigid.any():
+        raise InputError(
+            f"{cam_path}: key 'w2c' rotation block is not orthonormal (scale or shear: not a rigid camera)"
+            f"{_at_frame(frames, not_rigid)}; w2c must be a rotation and a translation in metres"
+        )
     height, width = int(np.asarray(cams["height"]).reshape(-1)[0]), int(np.asarray(cams["width"]).reshape(-1)[0])
     if height < 1 or width < 1:
         raise InputError(f"{cam_path}: height/width must be positive, got {height}x{width}")
@@ -230,7 +245,9 @@ def read_capture_v1(root: Path) -> CaptureV1:
             )
         _check_shape(pose_path, key, poses[key], expected, sizes)
         if poses[key].dtype.kind in "fc" and not np.all(np.isfinite(poses[key])):
-            raise InputError(f"{pose_path}: key '{key}' holds NaN or infinite values")
+            per_frame = poses[key].ndim >= 1 and poses[key].shape[0] == n_frames and expected[0] == "N"
+            where = _at_frame(frames, ~np.isfinite(poses[key])) if per_frame else ""
+            raise InputError(f"{pose_path}: key '{key}' holds NaN or infinite values{where}")
     allowed = set(layout) | OPTIONAL_POSE_KEYS.get(meta["body_model"], set())
     extra = sorted(set(poses) - allowed)
     if extra:

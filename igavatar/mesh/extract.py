@@ -52,6 +52,23 @@ def _cubic_grid(
     return origin, spacing, counts
 
 
+#: Bytes per fine-grid sample: the float32 SDF volume, the boolean masks made from it and
+#: marching cubes' working copy (measured peaks stay below this on a full box).
+MARCHING_BYTES_PER_SAMPLE = 8
+
+
+def marching_cubes_bytes(box_min, box_max, resolution: int) -> int:
+    """Memory (a bound) of extracting a mesh at `resolution` inside the box: the full fine grid.
+
+    The narrow band and the tight box usually need less; a size refused by this bound could need
+    up to this much when the surface fills the box.
+    """
+    lo = np.asarray(torch.as_tensor(box_min).detach().cpu(), dtype=np.float64).reshape(-1)
+    hi = np.asarray(torch.as_tensor(box_max).detach().cpu(), dtype=np.float64).reshape(-1)
+    _, _, counts = _cubic_grid(lo, hi, int(resolution))
+    return int(np.prod(counts.astype(np.float64)) * MARCHING_BYTES_PER_SAMPLE)
+
+
 class _Evaluator:
     """Evaluates sdf_fn at numpy points in chunks, counting evaluations for the progress callback."""
 
