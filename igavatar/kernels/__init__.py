@@ -56,8 +56,11 @@ def set_kernels_enabled(enabled: bool | None) -> None:
 def _cache_dir(name: str) -> Path:
     root = Path(os.environ.get("IGAVATAR_KERNEL_CACHE", Path.home() / ".cache" / "igavatar" / "kernels"))
     # One directory per torch build and source text, the shared headers included (csrc/*.h): a
-    # stale library is never loaded.
+    # stale library is never loaded. The source folder is part of the key too: torch's build
+    # records absolute source paths, so two checkouts sharing one directory would rebuild it in
+    # turn (and wait on each other's build lock).
     digest = hashlib.sha1((_SOURCE_DIR / f"{name}.cpp").read_bytes())
+    digest.update(str(_SOURCE_DIR.resolve()).encode())
     for header in sorted(_SOURCE_DIR.glob("*.h")):
         digest.update(header.name.encode() + header.read_bytes())
     digest.update(torch.__version__.encode())
