@@ -70,6 +70,7 @@ from igavatar.metrics.report import (
     metric_curves_image,
 )
 from igavatar.model.render_avatar import render_avatar_view
+from stages.canonical_eval import canonical_section
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
@@ -588,7 +589,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     timings["load_s"] = time.perf_counter() - tick
 
     notes: list[str] = []
-    prediction_mesh = None
+    prediction_mesh = canonical = canonical_png = None
     canonical_v = canonical_f = None
     if options.geometry:
         tick = time.perf_counter()
@@ -611,6 +612,11 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
         if not prediction_mesh["watertight"]:
             notes.append("the predicted mesh is not watertight (the surface reaches the canonical box or has holes)")
         timings["canonical_mesh_s"] = time.perf_counter() - tick
+        tick = time.perf_counter()
+        capture_dir = gt_dir.parent if gt_dir is not None and gt_dir.name == "scans" else None
+        canonical, canonical_png = canonical_section(dataset_dir, dataset_manifest, capture_dir, (canonical_v, canonical_f),
+                                                     n_iou=min(options.iou_points, 200_000), seed=options.seed)
+        timings["canonical_checks_s"] = time.perf_counter() - tick
 
     dataset_hw = tuple(int(s) for s in dataset_manifest["data"]["image_size"])
     image_settings = resolve_image_settings(options, device)
@@ -683,6 +689,11 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
             trimesh.Trimesh(posed_v, canonical_f, vertex_colors=colours, process=False).export(
                 tmp / "geometry" / f"worst_{name}.ply")
             document["files"]["worst frame mesh (vertex colours = distance to scan)"] = f"geometry/worst_{name}.ply"
+        if canonical is not None:
+            document["canonical"] = canonical
+        if canonical_png is not None:
+            _write_png(tmp / "geometry" / "canonical_views.png", canonical_png)
+            document["files"]["canonical mesh, front and side, beside the truth and the template"] = "geometry/canonical_views.png"
         full = {**document, "frames": records}
         validate_against("report", full, f"{out}/metrics.json")
         (tmp / "metrics.json").write_text(json.dumps(full, indent=2) + "\n")

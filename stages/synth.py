@@ -6,7 +6,8 @@
 Training frames: one 360-degree turn in place in the A-pose with small natural motion; test frames:
 novel poses (walk in place, arm raise, squat), each turned by a seeded yaw. One static level camera
 about 3 m away frames every frame. Per frame: images/<f>.png, masks/<f>.png (coverage > 0.5 of the
-same 2x2 supersampled rays) and scans/<f>.ply (the posed clothed surface in world coordinates).
+same 2x2 supersampled rays) and scans/<f>.ply (the posed clothed surface in world coordinates);
+once, ground_truth/clothed_rest.npz (that surface in the rest pose with its skinning weights).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from igavatar.body.motions import Motion, motion_by_name, turntable, walk
 from igavatar.body.rotations import rigid_matrix
 from igavatar.body.skeleton import forward_kinematics, linear_blend_skinning
 from igavatar.errors import ArtifactError, InputError
+from igavatar.metrics.canonical import REST_SURFACE_FILE
 from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject, vertex_normals
 from igavatar.synth.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
 from igavatar.synth.scene import frame_static_camera, lambert_shading, light_position, yaw_about_vertical
@@ -261,6 +263,22 @@ def _shader(subject: ClothedSubject, texture: SolidTexture, normals_world: np.nd
     return shade
 
 
+#: The clothed surface in the body model's rest pose with its skinning weights (ground truth of
+#: the canonical shape: `eval` poses it into the dataset's canonical pose).
+REST_SURFACE = REST_SURFACE_FILE
+REST_SURFACE_INFLUENCES = 8
+
+
+def _write_rest_surface(path: Path, subject: ClothedSubject) -> None:
+    """vertices (V, 3), faces (F, 3), top-k joint indices and renormalised weights (V, k)."""
+    weights = np.asarray(subject.weights, np.float32)
+    top = np.argsort(-weights, axis=1)[:, :REST_SURFACE_INFLUENCES]
+    value = np.take_along_axis(weights, top, axis=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, vertices=subject.vertices_canonical.astype(np.float64), faces=subject.faces.astype(np.int64),
+             weights_index=top.astype(np.int64), weights_value=value / value.sum(axis=1, keepdims=True))
+
+
 def _existing_matches(out: Path, config: dict) -> bool:
     if not (out / MANIFEST_NAME).is_file():
         return False
@@ -355,6 +373,7 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
             phenotype_labels=np.array(body.phenotype_labels, dtype=np.str_),
             phenotype_values=body.phenotype_values,
         )
+        _write_rest_surface(tmp / REST_SURFACE, subject)
         (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n")
         timings["render_s"] = time.perf_counter() - render_started
         timings["total_s"] = time.perf_counter() - started

@@ -296,3 +296,20 @@ def test_markdown_report_has_means_matching_and_a_row_per_frame():
     assert "| `f0` | 0.500 |" in text and "| `f1` | — |" in text and "| **mean** | 0.500 |" in text
     assert "**missing** (test frames without a scan, no geometry metrics): `f1`" in text
     assert "`f1`: no scan" in text and "| 25 | 0.579 |" in text
+
+
+def test_report_checks_the_canonical_shape_against_the_synthetic_truth(report):
+    document = json.loads((report / "metrics.json").read_text())
+    canonical = document["canonical"]
+    assert canonical["truth"].startswith("ground_truth/clothed_rest.npz")
+    limbs = canonical["limb_check"]
+    # An Anny template has every part; each part's coverage is a share and the verdict follows it.
+    assert {"left_hand", "right_forearm", "head", "left_foot"} <= set(limbs["parts"])
+    for part, entry in limbs["parts"].items():
+        assert 0.0 <= entry["covered"] <= 1.0 and entry["passed"] == (entry["covered"] >= limbs["min_covered"])
+    assert limbs["passed"] == (not limbs["failed_parts"])
+    assert canonical["leg_gap"]["points"] > 0 and 0.0 <= canonical["leg_gap"]["webbed"] <= 1.0
+    truth = canonical["against_truth"]
+    assert truth["chamfer_l1_mm"] > 0 and 0.0 <= truth["volumetric_iou"] <= 1.0
+    picture = cv2.imread(str(report / document["files"]["canonical mesh, front and side, beside the truth and the template"]))
+    assert picture.shape[0] == 3 * picture.shape[1] // 2  # three rows (prediction, truth, template) of two views

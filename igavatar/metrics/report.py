@@ -405,3 +405,43 @@ def error_mesh_panel(
     _text(header, "scan", (4, 13), 0.4)
     _text(header, "prediction: distance to scan", (width + 4, 13), 0.4)
     return np.concatenate([header, panel], axis=0)
+
+
+def _look_from(centre: np.ndarray, direction: np.ndarray, distance: float) -> np.ndarray:
+    """(4, 4) OpenCV w2c of a camera `distance` from `centre` along `direction`, looking back, +Z up."""
+    eye = centre + distance * direction
+    forward = -direction / np.linalg.norm(direction)
+    right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = rotation, -rotation @ eye
+    return w2c
+
+
+def canonical_views_image(meshes: Sequence[tuple[str, np.ndarray, np.ndarray]], size: int = 320) -> np.ndarray:
+    """Front and side views of canonical meshes (+Z up, facing -Y) as one uint8 RGB image.
+
+    Args:
+        meshes: (title, vertices (V, 3), faces (F, 3)) per row, e.g. prediction, truth, template.
+        size: pixels per view.
+    Returns:
+        (rows * size, 2 * size, 3) uint8: one row per mesh, front | side, titled.
+    """
+    everything = np.concatenate([np.asarray(v, np.float64) for _, v, _ in meshes])
+    centre = 0.5 * (everything.min(0) + everything.max(0))
+    extent = float((everything.max(0) - everything.min(0)).max())
+    distance = 4.0 * extent
+    focal = size * distance / (1.15 * extent)
+    K = np.array([[focal, 0.0, (size - 1) / 2], [0.0, focal, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    views = [_look_from(centre, np.array([0.0, -1.0, 0.0]), distance), _look_from(centre, np.array([1.0, 0.0, 0.0]), distance)]
+    rows = []
+    for title, vertices, faces in meshes:
+        grey = np.full((len(vertices), 3), 0.75)
+        row = [(_render_colored(vertices, faces, grey, CameraRays(K, w2c, size, size, supersample=1)) * 255).round().astype(np.uint8)
+               for w2c in views]
+        image = np.ascontiguousarray(np.concatenate(row, axis=1))
+        _text(image, f"{title}: front | side", (6, 16))
+        rows.append(image)
+    return np.concatenate(rows, axis=0)

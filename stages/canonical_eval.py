@@ -1,0 +1,90 @@
+"""The canonical-shape part of `igavatar eval`: gathers the dataset's template, skeleton and (for a
+synthetic capture) the true clothed surface, and asks `igavatar.metrics.canonical` about the
+predicted canonical mesh: is every limb there, is the gap between the legs empty, how close is it
+to the truth.
+
+    section, image = canonical_section(dataset_dir, dataset_manifest, capture_dir, (v, f), n_iou=200_000)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import trimesh
+
+from igavatar.body.motions import semantic_joint_map
+from igavatar.metrics.canonical import (
+    REST_SURFACE_FILE,
+    canonical_from_rest,
+    canonical_shape_report,
+    leg_gap_points,
+    limb_labels,
+    rest_to_canonical_transforms,
+)
+from igavatar.metrics.report import canonical_views_image
+from igavatar.skinning.grid import sample_grid
+
+#: Body models whose joints have semantic names (limbs can be told apart).
+NAMED_SKELETONS = ("anny", "smpl")
+
+
+def _skeleton_kind(dataset_manifest: dict) -> str | None:
+    kind = dataset_manifest["data"].get("body_model")
+    return kind if kind in NAMED_SKELETONS else None
+
+
+def canonical_truth(capture_dir: Path | None, subject: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """The true clothed surface in the dataset's canonical pose, when the capture has it."""
+    path = None if capture_dir is None else Path(capture_dir) / REST_SURFACE_FILE
+    if path is None or not path.is_file():
+        return None
+    with np.load(path) as rest:
+        transforms = rest_to_canonical_transforms(subject["rest_joints"], subject["parents"], subject["canonical_rotations"])
+        vertices = canonical_from_rest(rest["vertices"], rest["weights_index"], rest["weights_value"], transforms)
+        return vertices, np.asarray(rest["faces"], np.int64)
+
+
+def canonical_section(
+    dataset_dir: Path,
+    dataset_manifest: dict,
+    capture_dir: Path | None,
+    pred: tuple[np.ndarray, np.ndarray],
+    n_iou: int = 200_000,
+    seed: int = 0,
+) -> tuple[dict[str, Any] | None, np.ndarray | None]:
+    """The report's `canonical` section and its front/side picture; (None, None) without a template.
+
+    The limb check needs the template's vertices grouped by body part, so it runs for body models
+    with named joints (Anny, SMPL); a bare skeleton gets the comparison with the truth only.
+    """
+    template_path = dataset_dir / "template.ply"
+    if not template_path.is_file():
+        return None, None
+    template = trimesh.load(template_path, process=False)
+    template_v, template_f = np.asarray(template.vertices, np.float64), np.asarray(template.faces, np.int64)
+    with np.load(dataset_dir / "subject.npz") as arrays:
+        subject = {key: arrays[key] for key in arrays.files}
+    truth = canonical_truth(capture_dir, subject)
+    kind = _skeleton_kind(dataset_manifest)
+    joint_names = [str(n) for n in subject["joint_names"]]
+    labels = np.full(len(template_v), -1, np.int64)
+    gap = None
+    if kind is not None and dataset_manifest["data"].get("shape_prior", "template") == "template":
+        weights = sample_grid(torch.from_numpy(subject["skinning_grid"]).float(), torch.from_numpy(subject["grid_box_min"]).float(),
+                              torch.from_numpy(subject["grid_box_max"]).float(), torch.from_numpy(template_v).float())
+        joint_map = dict(semantic_joint_map(kind))
+        labels = limb_labels(subject["parents"], joint_names, joint_map, weights.argmax(dim=1).numpy())
+        index = {part: joint_names.index(name) for part, name in joint_map.items() if name in joint_names}
+        if all(part in index for part in ("left_thigh", "right_thigh", "left_shin", "right_shin")):
+            gap = leg_gap_points(subject["canonical_joints"].astype(np.float64), index)
+    section = canonical_shape_report(pred, (template_v, template_f), labels, gap, truth, n_iou=n_iou, seed=seed)
+    section["frame"] = "canonical (the avatar's rest space, metres in, units as in the posed metrics)"
+    section["truth"] = "ground_truth/clothed_rest.npz of the capture, posed into the canonical pose" if truth else "not available"
+    rows = [("prediction", pred[0], pred[1])]
+    if truth is not None:
+        rows.append(("truth (clothed)", truth[0], truth[1]))
+    rows.append(("template (naked)", template_v, template_f))
+    return section, canonical_views_image(rows)
