@@ -218,6 +218,12 @@ def train(
     smooth_pairs: Annotated[
         Optional[str], typer.Option(help="L_smooth pairs: valid (consecutive samples on a ray, also across gaps; Eq. 9), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code).")
     ] = None,
+    smooth_form: Annotated[
+        Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")
+    ] = None,
+    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (metres) when photometric training starts [default: the preset's].")] = None,
+    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (metres): the rendered silhouette sits ~2 beta outside the surface, so a smaller cap means less inward bias [default: the preset's].")] = None,
+    free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) [default: the preset's].")] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
     ] = None,
@@ -234,7 +240,8 @@ def train(
     layout = RunLayout(run_dir)
     options = TrainOptions(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
-        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs,
+        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form,
+        beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
         sdf_encoding=sdf_encoding,
         seed=seed, device=device, resume=resume,
     )

@@ -65,6 +65,10 @@ class TrainOptions:
     sdf_encoding: str | None = None
     smooth_weight: float | None = None
     smooth_pairs: str | None = None
+    smooth_form: str | None = None
+    beta_init: float | None = None
+    beta_final: float | None = None
+    free_space_weight: float | None = None
     seed: int = 0
     device: str = "auto"
     resume: bool = False
@@ -86,10 +90,24 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
     config = with_overrides(
         preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
         samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
-        sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs,
+        sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form,
     )
-    if options.smooth_weight is not None:
-        config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, smooth=options.smooth_weight))
+    weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight))
+               if value is not None}
+    for name, value in weights.items():
+        if value < 0:
+            raise InputError(f"--{name.replace('_', '-')}-weight {value}: must be >= 0")
+    if weights:
+        config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
+    if options.beta_init is not None:
+        if not 1e-4 <= options.beta_init <= 1.0:
+            raise InputError(f"--beta-init {options.beta_init}: expected metres in [1e-4, 1]")
+        density = dataclasses.replace(config.avatar.density, beta_init=options.beta_init)
+        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, density=density))
+    if options.beta_final is not None:
+        if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:
+            raise InputError(f"--beta-final {options.beta_final}: expected metres in [1e-4, beta_init = {config.avatar.density.beta_init}]")
+        config = dataclasses.replace(config, beta_final=options.beta_final)
     return config
 
 

@@ -319,3 +319,19 @@ def test_losses_on_rendered_samples_backpropagate_to_field_parameters() -> None:
     wobble.grad = None
     smooth_loss_along_ray(render_rays(samples, field, background).gradient, out.valid).backward()
     assert float(wobble.grad) > 0
+
+
+def test_smooth_loss_released_normalisation_squares_and_divides_by_every_slot() -> None:
+    # One ray of 4 slots with 3 valid samples: normals +x, +x, +y (one change of 90 degrees).
+    gradients = torch.tensor([[[1.0, 0, 0], [2.0, 0, 0], [0, 3.0, 0], [0, 0, 1.0]]])
+    valid = torch.tensor([[True, True, True, False]])
+    released = smooth_loss_along_ray(gradients, valid, normalization="released")
+    # |n_bar - n_a|^2 + |n_bar - n_b|^2 = |n_b - n_a|^2 / 2 = 1 for the 90-degree pair, over 3 slots.
+    assert math.isclose(float(released), 1.0 / 3.0, rel_tol=1e-6)
+    eq9 = smooth_loss_along_ray(gradients, valid)
+    assert math.isclose(float(eq9), math.sqrt(2.0) / 3.0, rel_tol=1e-6)  # unsquared, over N_s = 3
+    # Twice the rays with nothing valid halves the released value (every slot counts), not Eq. 9's.
+    padded_g = torch.cat([gradients, torch.zeros_like(gradients)])
+    padded_v = torch.cat([valid, torch.zeros_like(valid)])
+    assert math.isclose(float(smooth_loss_along_ray(padded_g, padded_v, normalization="released")), 1.0 / 6.0, rel_tol=1e-6)
+    assert math.isclose(float(smooth_loss_along_ray(padded_g, padded_v)), float(eq9), rel_tol=1e-6)

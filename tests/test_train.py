@@ -242,3 +242,26 @@ def test_shape_init_artifact_holds_the_initial_fit_and_a_rerun_matches_a_fresh_r
     assert again.keys() == fresh.keys()
     for key, value in fresh.items():
         assert np.array_equal(again[key], value), key
+
+
+def test_free_space_term_trains_and_new_options_are_checked(small_run, cli_runner, tmp_path):
+    config = preset("tiny")
+    config = dataclasses.replace(config, steps=3, loss_weights=dataclasses.replace(config.loss_weights, free_space=1.0),
+                                 hull_in_occupancy=True)
+    manifest = read_artifact(small_run / "dataset", expected="dataset")
+    subject = dict(np.load(small_run / "dataset" / "subject.npz"))
+    trainer = Trainer(config, load_training_data(small_run / "dataset", manifest), build_avatar(config, subject, manifest["data"]["pose_dim"]))
+    assert trainer.hull is not None and 0.0 < trainer.hull.occupied_fraction < 1.0
+    logs = [trainer.train_step() for _ in range(3)]
+    assert all("free_space" in log and np.isfinite(log["free_space"]) for log in logs)
+    # Cells inside the hull stay occupied whatever the density says (growth beyond the prior).
+    assert bool((trainer.canonical_grid.occupied | ~trainer._hull_cells()).all())
+
+    resolved = resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny", beta_init=0.02,
+                                           beta_final=0.001, free_space_weight=0.5, smooth_form="released"))
+    assert resolved.avatar.density.beta_init == 0.02 and resolved.beta_final == 0.001
+    assert resolved.loss_weights.free_space == 0.5 and resolved.smooth_form == "released"
+    for flags in (["--beta-final", "0.5"], ["--smooth-form", "squared"], ["--free-space-weight", "-1"]):
+        result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
+                                         "--preset", "tiny", *flags])
+        assert result.exit_code != 0 and flags[0] in result.output and "Traceback" not in result.output

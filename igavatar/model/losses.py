@@ -62,6 +62,9 @@ class LossWeights:
     """Ablation: eikonal on finite-difference gradients (Neuralangelo), replacing ``eikonal``."""
     curvature: float = 5e-4
     """Ablation: Neuralangelo curvature term; scale it by :func:`linear_warmup` during warm-up."""
+    free_space: float = 0.0
+    """Hinge keeping the SDF at canonical points that the masks' visual hull rules out at least
+    as large as their distance to the hull (igavatar.training.visual_hull); 0 = off."""
 
 
 def total_loss(terms: Mapping[str, Tensor], weights: LossWeights) -> Tensor:
@@ -165,7 +168,7 @@ def _pair_term(n_a: Tensor, n_b: Tensor) -> Tensor:
 def smooth_loss_along_ray(
     gradients: Tensor,
     valid: Tensor,
-    normalization: Literal["samples", "pairs"] = "samples",
+    normalization: Literal["samples", "pairs", "released"] = "samples",
     pairs: Literal["valid", "adjacent"] = "valid",
     t_starts: Tensor | None = None,
     t_ends: Tensor | None = None,
@@ -187,6 +190,10 @@ def smooth_loss_along_ray(
     as Eq. 9 writes (``normalization="pairs"`` divides by ``N_s^i - 1`` instead, a true mean per
     pair). The result is the mean over rays with at least two valid samples; rays with fewer have
     no pair and are not counted, so the value does not depend on how many rays miss the body.
+    ``normalization="released"`` is the scale of the authors' code: each summand squared
+    (``|n_bar - n_hat|^2``, i.e. ``|n_hat_{j+1} - n_hat_j|^2 / 2`` per pair) and the sum divided by
+    every pair slot of every ray (R x (S - 1)), empty ones included; two to three orders of
+    magnitude weaker than Eq. 9, and its gradient fades as neighbouring normals align.
 
     Args:
         gradients: (R, S, 3) SDF gradients (or normals; only directions matter).
@@ -203,9 +210,9 @@ def smooth_loss_along_ray(
             f"smooth_loss_along_ray: gradients {tuple(gradients.shape)} and valid "
             f"{tuple(valid.shape)} must be (R, S, 3) and (R, S)"
         )
-    if normalization not in ("samples", "pairs"):
+    if normalization not in ("samples", "pairs", "released"):
         raise ValueError(
-            f"smooth_loss_along_ray: normalization must be 'samples' or 'pairs', got {normalization!r}"
+            f"smooth_loss_along_ray: normalization must be 'samples', 'pairs' or 'released', got {normalization!r}"
         )
     if pairs not in ("valid", "adjacent"):
         raise ValueError(f"smooth_loss_along_ray: pairs must be 'valid' or 'adjacent', got {pairs!r}")
@@ -236,6 +243,11 @@ def smooth_loss_along_ray(
         # whole interval, so a tolerance of a hundredth of the interval separates the two.
         tolerance = 1e-2 * (ends - starts)[:, :-1].abs()
         pair_valid = pair_valid & ((starts[:, 1:] - ends[:, :-1]).abs() <= tolerance)
+    if normalization == "released":
+        n_a, n_b = n_packed[:, :-1], n_packed[:, 1:]
+        n_mid = 0.5 * (n_a + n_b)
+        term = (n_mid - n_a).square().sum(dim=-1) + (n_mid - n_b).square().sum(dim=-1)
+        return torch.where(pair_valid, term, torch.zeros_like(term)).sum() / max(1, r * (s - 1))
     term = _pair_term(n_packed[:, :-1], n_packed[:, 1:])
     per_ray_sum = torch.where(pair_valid, term, torch.zeros_like(term)).sum(dim=1)
     has_pair = num_valid >= 2

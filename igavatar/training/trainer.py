@@ -44,6 +44,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import adam
+from igavatar.training.visual_hull import CanonicalHull, canonical_visual_hull, free_space_loss
 
 #: Prepared frames kept in memory (each is a (12, D, H, W) blended-transform grid).
 PREPARED_CACHE = 512
@@ -82,6 +83,9 @@ class Trainer:
             betas=(0.9, 0.99), eps=config.adam_eps,
         )
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
+        self.hull: CanonicalHull | None = None
+        if config.loss_weights.free_space > 0 or config.hull_in_occupancy:
+            self.hull = canonical_visual_hull(self.avatar.deformer, data, box, cell_size=config.hull_cell_size)
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
@@ -132,6 +136,26 @@ class Trainer:
         grid_generator = torch.Generator(device=self.device).manual_seed(self.config.seed * 7919 + self.step)
         self.avatar.eval()
         self.canonical_grid.update(self.avatar.canonical_density, generator=grid_generator)
+        if self.hull is not None and self.config.hull_in_occupancy:
+            self.canonical_grid.occupied |= self._hull_cells()
+
+    def _hull_cells(self) -> torch.Tensor:
+        """(R, R, R) bool: occupancy cells whose centre the visual hull keeps (computed once)."""
+        if getattr(self, "_hull_cells_cache", None) is None:
+            centres = self.canonical_grid.cell_centres().reshape(-1, 3)
+            kept = self.hull.free_distance(centres.cpu()) <= 0
+            self._hull_cells_cache = kept.reshape(self.canonical_grid.occupied.shape).to(self.device)
+        return self._hull_cells_cache
+
+    def _free_space_term(self) -> torch.Tensor:
+        """The visual hull's free-space hinge on points drawn uniformly in the canonical box."""
+        box = self.avatar.canonical_box
+        u = torch.rand((self.config.free_space_points, 3), generator=self.generator).to(self.device)
+        x = box[0] + u * (box[1] - box[0])
+        bound = self.hull.free_distance(x)
+        keep = bound > self.config.hull_cell_size
+        sdf, _ = self.avatar.sdf_field(x[keep])
+        return free_space_loss(sdf, bound[keep], slack=self.config.hull_cell_size)
 
     def _regulariser_terms(
         self, out, samples: RaySamples, x_rigid: torch.Tensor, pose: torch.Tensor
@@ -151,7 +175,8 @@ class Trainer:
             terms["smooth"] = smooth_loss_neighbour_rays(out.gradient.reshape(*shape, 3), valid.reshape(shape))
         elif reg == "smooth":
             terms["smooth"] = smooth_loss_along_ray(
-                out.gradient, valid, pairs=config.smooth_pairs, t_starts=samples.t_starts, t_ends=samples.t_ends
+                out.gradient, valid, pairs=config.smooth_pairs, t_starts=samples.t_starts, t_ends=samples.t_ends,
+                normalization="released" if config.smooth_form == "released" else "samples",
             )
         if reg in ("fd-eikonal", "curvature", "fd-eikonal+curvature") and x_rigid.shape[0] > 0:
             x = self.avatar.offset_points(x_rigid, pose)
@@ -221,6 +246,8 @@ class Trainer:
         out = render_rays(canonical_samples, field_fn, background)
         terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
         terms.update(self._regulariser_terms(out, canonical_samples, x_rigid, pose))
+        if self.hull is not None and config.loss_weights.free_space > 0:
+            terms["free_space"] = self._free_space_term()
         loss = total_loss(terms, config.loss_weights)
 
         self.optimizer.zero_grad(set_to_none=True)

@@ -3,6 +3,7 @@
     python tests/benchmarks/bench_quality.py                       # 2 subjects x 6 variants (~45 min, 2 cores)
     python tests/benchmarks/bench_quality.py --quick               # a smoke run (tiny sizes)
     python tests/benchmarks/bench_quality.py --write-results       # also record it in tests/benchmarks/results/
+    python tests/benchmarks/bench_quality.py --variants before,smooth --seeds 0,1,2   # the geometry comparison
 
 For every subject (different phenotype, garment, texture and seed) it synthesises a capture
 with in-distribution test frames (a second A-pose turn, views between the training views) and
@@ -39,6 +40,8 @@ SUBJECTS: dict[str, list[str]] = {
     "stripes-shirt": ["--seed", "0"],
     "checker-dress": ["--seed", "7", "--phenotype", "gender=0.9", "--phenotype", "weight=0.3",
                       "--garment", "dress", "--texture", "checker"],
+    "plain-heavy": ["--seed", "11", "--phenotype", "gender=0.2", "--phenotype", "weight=0.8", "--phenotype", "height=0.8",
+                    "--texture", "plain"],
 }
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
@@ -46,10 +49,19 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-adjacent": ["--regularizer", "smooth", "--smooth-pairs", "adjacent"],
     "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
     "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
+    # The cpu preset before the geometry work of issue 16 (beta 0.075 -> 3 mm, Eq. 9 at weight 1).
+    "before": ["--regularizer", "smooth", "--smooth-weight", "1", "--smooth-form", "eq9", "--beta-init", "0.075",
+               "--beta-final", "0.003", "--free-space-weight", "0"],
+    "smooth-eq9-w0.1": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.1"],
+    "smooth-eq9-w0.01": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.01"],
+    "smooth-released-w1": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "1"],
+    "smooth-released-w10": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "10"],
+    "none-no-hull": ["--regularizer", "none", "--free-space-weight", "0"],
 }
-METRICS: tuple[str, ...] = ("psnr_full_db", "ssim_full", "chamfer_l2_cm2", "chamfer_l1_surface_mm",
-                            "normal_consistency_vertices", "normal_consistency_surface", "volumetric_iou")
-SHORT = {"psnr_full_db": "PSNR", "ssim_full": "SSIM", "chamfer_l2_cm2": "CD-L2 cm2", "chamfer_l1_surface_mm": "CD-L1 mm",
+METRICS: tuple[str, ...] = ("psnr_full_db", "psnr_mask_bbox_db", "ssim_full", "ssim_mask_bbox", "chamfer_l2_cm2",
+                            "chamfer_l1_surface_mm", "normal_consistency_vertices", "normal_consistency_surface", "volumetric_iou")
+SHORT = {"psnr_full_db": "PSNR", "psnr_mask_bbox_db": "PSNR box", "ssim_full": "SSIM", "ssim_mask_bbox": "SSIM box",
+         "chamfer_l2_cm2": "CD-L2 cm2", "chamfer_l1_surface_mm": "CD-L1 mm",
          "normal_consistency_vertices": "NC", "normal_consistency_surface": "NC surf", "volumetric_iou": "IoU"}
 
 
@@ -88,7 +100,8 @@ def group_means(metrics: dict, groups: dict[str, list[str]]) -> dict[str, dict[s
 
 
 def train_and_eval(run: Path, variant: str, steps: int, args: argparse.Namespace, groups: dict[str, list[str]]) -> dict:
-    model, report = run / f"model-{variant}", run / f"report-{variant}"
+    tag = variant if args.seed == 0 else f"{variant}-seed{args.seed}"
+    model, report = run / f"model-{tag}", run / f"report-{tag}"
     if args.reuse and (model / "manifest.json").is_file() and (report / "metrics.json").is_file():
         return _row(variant, model, report, None, groups)
     train_args = ["train", "--run-dir", str(run), "--out", str(model), "--preset", args.preset, "--steps", str(steps),
@@ -116,8 +129,16 @@ def _row(variant: str, model: Path, report: Path, train_wall: float | None, grou
     manifest = read_json(model / "manifest.json")
     speed = manifest["data"]["speed"]
     metrics = read_json(report / "metrics.json")
+    canonical = metrics.get("canonical") or {}
+    limbs, gap, truth = canonical.get("limb_check"), canonical.get("leg_gap"), canonical.get("against_truth")
     return {
-        "variant": variant, "steps": manifest["data"]["steps"],
+        "variant": variant, "steps": manifest["data"]["steps"], "seed": manifest["seed"],
+        "canonical": {
+            "limbs_ok": None if limbs is None else limbs["passed"], "failed_parts": None if limbs is None else limbs["failed_parts"],
+            "web": None if gap is None else gap["webbed"],
+            "iou": None if truth is None else truth["volumetric_iou"], "cd_l1_mm": None if truth is None else truth["chamfer_l1_mm"],
+            "nc_surf": None if truth is None else truth["normal_consistency_surface"],
+        },
         "train_s": manifest["timings"]["train_s"], "train_wall_s": train_wall,
         "step_s": 1.0 / speed["iterations_per_second"], "peak_ram_gb": manifest["peak_memory"]["ram_bytes"] / 2**30,
         "watertight": bool(metrics["prediction_mesh"]["watertight"]),
@@ -144,18 +165,19 @@ def run_subject(name: str, synth_args: list[str], args: argparse.Namespace) -> d
         "out-of-distribution": [f for f in frames if not f.startswith("test_holdout_")],
     }
     rows = []
-    for variant in args.variants:
+    for seed, variant in [(seed, variant) for seed in args.seeds for variant in args.variants]:
+        args.seed = seed
         if variant == "mlp" and args.reuse and (run / "model-mlp" / "manifest.json").is_file():
             steps = 0  # read back, not trained
         elif variant == "mlp":
-            smooth = next((r for r in rows if r["variant"] == "smooth"), None)
+            smooth = next((r for r in rows if r["variant"] == "smooth" and r["seed"] == seed), None)
             budget = smooth["train_s"] if smooth else args.steps * 0.15
             steps = max(1, int(budget / probe_step_seconds(run, args)))
         else:
             steps = args.steps
         row = train_and_eval(run, variant, steps, args, groups)
         rows.append(row)
-        print(f"  {name:<14} {variant:<11} steps {row['steps']:>5} step {row['step_s']:.3f} s  "
+        print(f"  {name:<14} {variant:<11} seed {seed} steps {row['steps']:>5} step {row['step_s']:.3f} s  "
               + "  ".join(f"{SHORT[k]} {v:.3f}" for k, v in row["metrics"]["out-of-distribution"].items() if v is not None),
               flush=True)
     return {"subject": name, "synth_args": synth_args, "groups": {k: len(v) for k, v in groups.items()}, "rows": rows}
@@ -176,11 +198,28 @@ def markdown(results: dict) -> str:
                 values = row["metrics"][group]
                 ratio = f"{row['step_s'] / base:.2f}" if base else "-"
                 cells = [("-" if values[k] is None else f"{values[k]:.3f}") for k in METRICS]
-                lines.append(f"| {row['variant']} | {row['steps']} | {row['step_s']:.3f} | {ratio} | {row['peak_ram_gb']:.2f} | "
-                             f"{'yes' if row['watertight'] else 'no (IoU by ray parity)'} | "
+                lines.append(f"| {row['variant']} (seed {row.get('seed', 0)}) | {row['steps']} | {row['step_s']:.3f} | {ratio} | "
+                             f"{row['peak_ram_gb']:.2f} | {'yes' if row['watertight'] else 'no (IoU by ray parity)'} | "
                              + " | ".join(cells) + " |")
             lines.append("")
+        lines += canonical_table(subject)
     return "\n".join(lines)
+
+
+def canonical_table(subject: dict) -> list[str]:
+    """The canonical shape per run: limb check, web between the legs, metrics against the true surface."""
+    lines = [f"## {subject['subject']}: canonical shape (against the synthetic clothed surface in the canonical pose)", "",
+             "| variant | seed | limbs | failed parts | leg-gap web | IoU | CD-L1 mm | NC surf |", "|---|---|---|---|---|---|---|---|"]
+    for row in subject["rows"]:
+        c = row.get("canonical") or {}
+
+        def number(key: str, digits: int = 3) -> str:
+            return "-" if c.get(key) is None else f"{c[key]:.{digits}f}"
+
+        limbs = "-" if c.get("limbs_ok") is None else ("pass" if c["limbs_ok"] else "FAIL")
+        lines.append(f"| {row['variant']} | {row.get('seed', 0)} | {limbs} | {', '.join(c.get('failed_parts') or []) or '-'} | "
+                     f"{number('web', 2)} | {number('iou')} | {number('cd_l1_mm', 2)} | {number('nc_surf')} |")
+    return lines + [""]
 
 
 def main() -> None:
@@ -198,7 +237,7 @@ def main() -> None:
     parser.add_argument("--mesh-resolution", type=int, default=256)
     parser.add_argument("--iou-points", type=int, default=200_000)
     parser.add_argument("--probe-steps", type=int, default=30)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", default="0", help="comma-separated training seeds (each variant is trained with each)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="tiny sizes: checks the script, not the method")
     parser.add_argument("--reuse", action="store_true",
@@ -213,6 +252,8 @@ def main() -> None:
         args.steps, args.resolution, args.train_frames, args.test_frames, args.holdout_frames = 30, 96, 8, 3, 2
         args.mesh_resolution, args.iou_points, args.probe_steps = 64, 20_000, 5
     args.variants = [v for v in args.variants.split(",") if v]
+    args.seeds = [int(v) for v in args.seeds.split(",") if v]
+    args.seed = args.seeds[0]
     unknown = [v for v in args.variants if v not in VARIANTS and v not in SMOOTH_VARIANTS]
     unknown += [s for s in args.subjects.split(",") if s not in SUBJECTS]
     if unknown:

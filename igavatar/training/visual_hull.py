@@ -1,0 +1,163 @@
+"""The masks' visual hull carried into canonical space, and the free-space bound it gives the SDF.
+
+    hull = canonical_visual_hull(deformer, data, box, cell_size=0.015)
+    free = hull.free_distance(x_canonical)        # (P,) metres; 0 where the hull does not rule x out
+    loss = free_space_loss(sdf_at_x, free)        # hinge: sdf(x) >= distance to the hull
+
+Canonical space that no training ray reaches through root finding is otherwise never constrained
+(between the thighs of a wide-legged canonical pose, beyond the hands), and training rays alone
+let a thin limb fade (see METHOD notes in DESIGN.md). Forward skinning needs no root finding: every
+canonical grid point is pushed into every training frame by LBS and projected into its mask. A
+point that a robust number of views see as background is free space. Since the subject lies inside
+every mask, its surface lies inside the hull, so at a free point the true SDF is at least the
+distance to the hull: a one-sided bound that carves webs and floaters but never pushes the surface
+inside the silhouettes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy import ndimage
+
+from igavatar.model.deformer import FastSnarfDeformer
+from igavatar.training.data import TrainingData
+
+
+@dataclass(frozen=True)
+class CanonicalHull:
+    """Visual-hull votes on a canonical grid.
+
+    Attributes:
+        box_min, box_max: (3,) canonical box of the grid.
+        seen: (D, H, W) int32 training views in which each cell centre projects into the image.
+        inside: (D, H, W) int32 views in which it falls inside the (slightly dilated) mask.
+        free: (D, H, W) bool cells that at least `min_outside` views see as background.
+        free_distance_grid: (D, H, W) float32 metres from each free cell to the nearest non-free
+            cell (0 for non-free cells): a lower bound of the true SDF there.
+    Index order D<->z, H<->y, W<->x (as the skinning grid and `grid_sample`).
+    """
+
+    box_min: torch.Tensor
+    box_max: torch.Tensor
+    seen: torch.Tensor
+    inside: torch.Tensor
+    free: torch.Tensor
+    free_distance_grid: torch.Tensor
+
+    @property
+    def occupied_fraction(self) -> float:
+        """Share of the box the hull keeps (not free)."""
+        return float((~self.free).float().mean())
+
+    def free_distance(self, x_canonical: torch.Tensor) -> torch.Tensor:
+        """(P, 3) canonical points -> (P,) lower bound of the SDF (metres; 0 = no bound).
+
+        Trilinear in the grid of distances; points outside the box get 0 (unconstrained).
+        """
+        grid = self.free_distance_grid.to(x_canonical.device)
+        lo, hi = self.box_min.to(x_canonical), self.box_max.to(x_canonical)
+        normalised = (x_canonical - lo) / (hi - lo) * 2.0 - 1.0
+        value = F.grid_sample(
+            grid[None, None], normalised[None, None, None], mode="bilinear", padding_mode="zeros", align_corners=True
+        )
+        return value.reshape(-1)
+
+
+def _grid_points(box_min: torch.Tensor, box_max: torch.Tensor, cell_size: float) -> tuple[torch.Tensor, tuple[int, int, int]]:
+    """Cell-corner points of a grid over the box (align_corners) as (D*H*W, 3) and the shape (D, H, W)."""
+    counts = [max(2, int(math.ceil(float(hi - lo) / cell_size)) + 1) for lo, hi in zip(box_min, box_max)]
+    axes = [torch.linspace(float(lo), float(hi), n) for lo, hi, n in zip(box_min, box_max, counts)]
+    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return torch.stack((x, y, z), dim=-1).reshape(-1, 3), (counts[2], counts[1], counts[0])
+
+
+@torch.no_grad()
+def canonical_visual_hull(
+    deformer: FastSnarfDeformer,
+    data: TrainingData,
+    box: torch.Tensor,
+    cell_size: float = 0.015,
+    max_views: int = 64,
+    mask_dilation_px: int = 2,
+    min_outside_fraction: float = 0.1,
+    min_outside: int = 2,
+    chunk_size: int = 262144,
+) -> CanonicalHull:
+    """Vote every canonical grid point in or out of the training frames' masks.
+
+    Args:
+        deformer: the avatar's deformer (forward LBS through its skinning grid).
+        data: training frames (masks, cameras, bone transforms); only `train_indices` vote.
+        box: (2, 3) canonical box of the grid (the SDF's box).
+        cell_size: grid spacing in metres.
+        max_views: at most this many training frames vote (evenly spaced), which bounds the cost.
+        mask_dilation_px: masks are dilated by this many pixels first, so that small errors of
+            pose, camera or mask do not carve the subject.
+        min_outside_fraction, min_outside: a point is free when at least
+            max(min_outside, min_outside_fraction * views that see it) views see background there.
+        chunk_size: points pushed through LBS at once.
+    Returns:
+        CanonicalHull on the CPU.
+    """
+    box = box.detach().float().cpu()
+    points, shape = _grid_points(box[0], box[1], cell_size)
+    frames = data.train_indices.tolist()
+    if len(frames) > max_views:
+        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_views).round().astype(int)]
+    device = deformer.weights_grid.device
+    kernel = np.ones((2 * mask_dilation_px + 1,) * 2, np.uint8)
+    seen = torch.zeros(points.shape[0], dtype=torch.int32)
+    inside = torch.zeros(points.shape[0], dtype=torch.int32)
+    height, width = data.image_size
+    for index in frames:
+        mask = data.masks[index].numpy().astype(np.uint8)
+        if mask_dilation_px > 0:
+            mask = ndimage.binary_dilation(mask, structure=kernel).astype(np.uint8)
+        mask_t = torch.from_numpy(mask.astype(bool))
+        frame = deformer.prepare(data.bone_transforms[index].to(device))
+        K, w2c = data.K[index].double(), data.w2c[index].double()
+        for start in range(0, points.shape[0], chunk_size):
+            chunk = points[start : start + chunk_size]
+            x_world = deformer.forward_skinning(chunk.to(device), frame).double().cpu()
+            x_camera = x_world @ w2c[:3, :3].T + w2c[:3, 3]
+            depth = x_camera[:, 2]
+            uv = (x_camera @ K.T)[:, :2] / depth.clamp_min(1e-6)[:, None]
+            u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
+            visible = (depth > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+            hit = torch.zeros_like(visible)
+            hit[visible] = mask_t[v[visible], u[visible]]
+            seen[start : start + chunk_size] += visible.int()
+            inside[start : start + chunk_size] += hit.int()
+    outside = seen - inside
+    needed = torch.clamp(torch.ceil(min_outside_fraction * seen.float()), min=float(min_outside)).int()
+    free = (outside >= needed).reshape(shape)
+    # Distance from each free cell to the nearest kept one: the SDF there is at least this much
+    # (the surface is inside the hull). Anisotropic spacing: the grid's cells need not be cubes.
+    spacing = [float(box[1, axis] - box[0, axis]) / (shape[2 - axis] - 1) for axis in (2, 1, 0)]
+    distance = ndimage.distance_transform_edt(free.numpy(), sampling=spacing).astype(np.float32)
+    return CanonicalHull(
+        box_min=box[0].clone(), box_max=box[1].clone(),
+        seen=seen.reshape(shape), inside=inside.reshape(shape), free=free,
+        free_distance_grid=torch.from_numpy(distance),
+    )
+
+
+def free_space_loss(sdf: torch.Tensor, free_distance: torch.Tensor, slack: float = 0.0) -> torch.Tensor:
+    """Hinge on the hull's lower bound: mean of relu(free_distance - slack - sdf) over free points.
+
+    Args:
+        sdf: (P,) predicted signed distance at the points.
+        free_distance: (P,) the hull's bound there (0 = unconstrained; such points are left out).
+        slack: metres subtracted from the bound (tolerance for the grid's resolution).
+    Returns:
+        scalar tensor (0 when no point is constrained).
+    """
+    constrained = free_distance > slack
+    if not bool(constrained.any()):
+        return sdf.sum() * 0.0
+    return torch.relu(free_distance[constrained] - slack - sdf[constrained]).mean()
