@@ -84,6 +84,7 @@ class Trainer:
         )
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
         self.hull: CanonicalHull | None = None
+        self._hull_cells_cache: torch.Tensor | None = None
         if config.loss_weights.free_space > 0 or config.hull_in_occupancy:
             self.hull = canonical_visual_hull(self.avatar.deformer, data, box, cell_size=config.hull_cell_size)
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
@@ -141,7 +142,7 @@ class Trainer:
 
     def _hull_cells(self) -> torch.Tensor:
         """(R, R, R) bool: occupancy cells whose centre the visual hull keeps (computed once)."""
-        if getattr(self, "_hull_cells_cache", None) is None:
+        if self._hull_cells_cache is None:
             centres = self.canonical_grid.cell_centres().reshape(-1, 3)
             kept = self.hull.free_distance(centres.cpu()) <= 0
             self._hull_cells_cache = kept.reshape(self.canonical_grid.occupied.shape).to(self.device)
