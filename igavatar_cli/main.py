@@ -206,7 +206,7 @@ def export(
     model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\[default: RUN_DIR/mesh].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
-    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colours), glb (rigged).")] = "ply,obj,glb",
+    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colours), glb (rigged, Y-up; with --pose animated).")] = "ply,obj,glb",
     resolution: Annotated[
         int, typer.Option(help="Marching-cubes samples on the longest axis of the surface box (the paper's 512; ~20-45 s on 2 CPU cores).", min=16)
     ] = 512,
@@ -216,6 +216,9 @@ def export(
     ] = None,
     taubin_steps: Annotated[int, typer.Option(help="Taubin smoothing iterations (0: none).", min=0)] = 0,
     target_faces: Annotated[Optional[int], typer.Option(help="Decimate to at most this many faces.", min=4)] = None,
+    influences: Annotated[
+        int, typer.Option(help="Skin weights per vertex in the GLB: 4 (JOINTS_0; web engines) or 8 (JOINTS_0/1; Blender).")
+    ] = 4,
     pose: Annotated[
         Optional[Path], typer.Option(help="Pose the avatar: a pose .npz (capture v1 Anny poses.npz), a capture directory or a dataset artifact.")
     ] = None,
@@ -241,7 +244,7 @@ def export(
     options = ExportOptions(
         model=model or layout.model, out=out or layout.mesh, formats=parse_formats(formats), resolution=resolution,
         coarse_resolution=coarse_resolution, min_component_ratio=min_component_ratio, taubin_steps=taubin_steps,
-        target_faces=target_faces, pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
+        target_faces=target_faces, influences=influences, pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
         posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
     )
     with RichProgress(err_console, quiet=quiet or json_out) as progress:

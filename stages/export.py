@@ -63,7 +63,16 @@ from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight, vertex_normals
 from igavatar.mesh.exr import write_exr
 from igavatar.mesh.extract import extract_mesh
-from igavatar.mesh.gltf import INFLUENCES, pose_relative_to_canonical, srgb_to_linear, top_k_weights, write_rigged_glb
+from igavatar.mesh.gltf import (
+    INFLUENCE_CHOICES,
+    INFLUENCES,
+    gltf_axes,
+    pose_relative_to_canonical,
+    srgb_to_linear,
+    top_k_weights,
+    write_rigged_glb,
+)
+from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.mesh.posing import pose_canonical_vertices, vertex_colors, vertex_skin_weights
 from igavatar.model.avatar import Avatar
@@ -99,6 +108,7 @@ class ExportOptions:
     min_component_ratio: float | None = None
     taubin_steps: int = 0
     target_faces: int | None = None
+    influences: int = INFLUENCES
     pose: Path | None = None
     frame: int | None = None
     all_frames: bool = False
@@ -115,7 +125,7 @@ class ExportOptions:
         return {
             "formats": list(self.formats), "resolution": self.resolution, "coarse_resolution": self.coarse_resolution,
             "min_component_ratio": self.min_component_ratio, "taubin_steps": self.taubin_steps,
-            "target_faces": self.target_faces, "pose": None if self.pose is None else str(self.pose),
+            "target_faces": self.target_faces, "influences": self.influences, "pose": None if self.pose is None else str(self.pose),
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
         }
@@ -163,6 +173,8 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError(f"--taubin-steps {options.taubin_steps}: expected >= 0")
     if options.target_faces is not None and options.target_faces < 4:
         raise InputError(f"--target-faces {options.target_faces}: expected at least 4")
+    if options.influences not in INFLUENCE_CHOICES:
+        raise InputError(f"--influences {options.influences}: expected 4 (web engines) or 8 (JOINTS_1/WEIGHTS_1 too)")
     if options.exr_size < 8:
         raise InputError(f"--exr-size {options.exr_size}: expected at least 8 pixels")
     if options.pose is None:
@@ -370,13 +382,6 @@ def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.
         mesh.export(path)
 
 
-def _lbs_top_k(vertices: np.ndarray, joints: np.ndarray, weights: np.ndarray, transforms: torch.Tensor) -> np.ndarray:
-    """LBS with sparse weights, as a glTF viewer skins: (V, 3) posed vertices (float64)."""
-    b = transforms.double().cpu().numpy()[:, :3, :]  # (J, 3, 4)
-    blended = np.einsum("vk,vkrc->vrc", weights.astype(np.float64), b[joints])  # (V, 3, 4)
-    return np.einsum("vrc,vc->vr", blended[:, :, :3], vertices.astype(np.float64)) + blended[:, :, 3]
-
-
 # --------------------------------------------------------------------------------------------
 # Maps
 
@@ -466,8 +471,7 @@ class _Canonical:
     vertices: np.ndarray  # (V, 3) float32
     faces: np.ndarray  # (F, 3) int64
     colors: np.ndarray  # (V, 3) uint8 sRGB
-    top_joints: np.ndarray | None  # (V, 4) GLB influences, when a GLB is written
-    top_weights: np.ndarray | None  # (V, 4)
+    skin_weights: np.ndarray | None  # (V, J) full grid weights, when a GLB is written
 
 
 def _export_frame(
@@ -489,14 +493,15 @@ def _export_frame(
     for fmt in [f for f in options.formats if f in ("ply", "obj")] or ["ply"]:
         _write_mesh(tmp / "posed" / f"{name}.{fmt}", x_posed, canonical.faces, canonical.colors)
         record["files"].append(f"posed/{name}.{fmt}")
-    if canonical.top_joints is not None:
-        # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset).
+    if canonical.skin_weights is not None:
+        # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset),
         x_canonical = torch.from_numpy(canonical.vertices).to(avatar.canonical_box.device)
         full_lbs = avatar.deformer.forward_skinning(x_canonical, frame).cpu().numpy()
-        gap = np.linalg.norm(
-            _lbs_top_k(canonical.vertices, canonical.top_joints, canonical.top_weights, transforms) - full_lbs, axis=1
-        )
+        joints, weights = top_k_weights(canonical.skin_weights, 4)
+        gap = np.linalg.norm(lbs_sparse(canonical.vertices, joints, weights, transforms) - full_lbs, axis=1)
         record["glb_top4_gap_mm"] = {"max": float(gap.max() * 1e3), "mean": float(gap.mean() * 1e3)}
+        # and how far top-4 and top-8 skinning land from igavatar's own posing (offset included).
+        record["glb_drift_mm"] = skin_drift_mm(canonical.vertices, canonical.skin_weights, transforms, x_posed)
     if not options.posed_marching:
         return record, None, x_posed
 
@@ -584,13 +589,13 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     colors = vertex_colors(avatar, vertices)
     timings["colors_s"] = time.perf_counter() - tick
     parents = np.asarray(subject["parents"], dtype=np.int64)
-    skin_weights = top_joints = top_weights = None
+    skin_weights = None
     if "glb" in options.formats:
         tick = time.perf_counter()
         skin_weights = vertex_skin_weights(avatar, vertices)
-        top_joints, top_weights = top_k_weights(skin_weights)
         timings["skin_weights_s"] = time.perf_counter() - tick
-    canonical = _Canonical(vertices, faces, colors, top_joints, top_weights)
+    canonical = _Canonical(vertices, faces, colors, skin_weights)
+    world_to_gltf = gltf_axes(data["body_model"])
 
     canonical_files: list[str] = []
     posed_records: list[dict] = []
@@ -612,11 +617,13 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
                 )
                 animation = (relative, offset, poses.fps)
             write_rigged_glb(tmp / "canonical.glb", vertices, faces, colors, model.joint_names, parents,
-                             np.asarray(subject["canonical_joints"], dtype=np.float64), skin_weights, animation=animation)
+                             np.asarray(subject["canonical_joints"], dtype=np.float64), skin_weights,
+                             world_to_gltf=world_to_gltf, animation=animation, influences=options.influences)
             canonical_files.append("canonical.glb")
-            glb_info = {"file": "canonical.glb", "joints": len(model.joint_names), "influences": INFLUENCES,
+            glb_info = {"file": "canonical.glb", "joints": len(model.joint_names), "influences": options.influences,
                         "animation_frames": 0 if poses is None else len(poses.names),
-                        "fps": None if poses is None else poses.fps}
+                        "fps": None if poses is None else poses.fps,
+                        "up_axis": "+Y", "world_to_gltf": world_to_gltf.tolist(), "drift_mm": None}
         timings["write_canonical_s"] = time.perf_counter() - tick
 
         body_axes = _body_axes(data["body_model"])
@@ -639,6 +646,10 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
                         map_views.append((name, x_posed, root_rotation @ body_axes))
                     advance(1)
             timings["posing_s"] = time.perf_counter() - tick
+            if glb_info is not None:
+                glb_info["drift_mm"] = {
+                    k: max(r["glb_drift_mm"][k]["max"] for r in posed_records) for k in ("4", "8")
+                }
             if options.posed_marching:
                 timings["posed_marching_s"] = sum(m["seconds"] for m in marched_records)
                 timings["posing_s"] -= timings["posed_marching_s"]

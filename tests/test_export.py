@@ -18,7 +18,15 @@ from igavatar.capture.subject import pose_frames
 from igavatar.errors import InputError, NotAvailableError
 from igavatar.mesh.cleanup import is_watertight
 from igavatar.mesh.exr import read_exr
-from igavatar.mesh.gltf import linear_to_srgb, pose_glb_vertices, pose_relative_to_canonical, read_glb_animation
+from igavatar.mesh.gltf import (
+    gltf_axes,
+    gltf_pose,
+    linear_to_srgb,
+    pose_glb_vertices,
+    pose_relative_to_canonical,
+    read_glb_animation,
+    read_rigged_glb,
+)
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.mesh.posing import pose_canonical_vertices
 from igavatar.model.avatar import Avatar
@@ -273,7 +281,8 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     scene = trimesh.load(out / "canonical.glb", process=False)
     geometry = next(iter(scene.geometry.values()))
     assert len(geometry.vertices) == len(canonical.vertices) and len(geometry.faces) == len(canonical.faces)
-    np.testing.assert_allclose(geometry.vertices, canonical.vertices, atol=1e-6)
+    axes = gltf_axes("anny")  # the GLB is Y-up: canonical vertices rotated from the capture's Z-up frame
+    np.testing.assert_allclose(geometry.vertices, canonical.vertices @ axes.T, atol=1e-6)
     # With a material, trimesh keeps COLOR_0 (linear, as glTF stores it) as a vertex attribute.
     colours = np.round(linear_to_srgb(geometry.visual.vertex_attributes["color"]) * 255)
     assert np.abs(colours - np.asarray(canonical.visual.vertex_colors)[:, :3]).max() <= 1
@@ -284,10 +293,11 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     rotations, translation = body.local_rotations_from_pose_parameters(torch.tensor(capture.poses["pose_parameters"][k:k + 1]))
     relative, offset = pose_relative_to_canonical(rotations[0].double().numpy(), translation[0].double().numpy(),
                                                   model.subject["canonical_rotations"], np.zeros(3), model.subject["parents"])
-    glb_posed = pose_glb_vertices(out / "canonical.glb", relative, offset)
+    glb_posed_gltf = pose_glb_vertices(out / "canonical.glb", *gltf_pose(axes, relative, offset))
     animation_rotations, animation_offset, _ = read_glb_animation(out / "canonical.glb")
     np.testing.assert_allclose(pose_glb_vertices(out / "canonical.glb", animation_rotations[0], animation_offset[0]),
-                               glb_posed, atol=1e-4)
+                               glb_posed_gltf, atol=1e-4)
+    glb_posed = glb_posed_gltf @ axes  # back to the capture's world frame
 
     # Same vertices as LBS with the GLB's own top-4 weights under the model's bone transforms: < 0.1 mm.
     transforms = model.pose(rotations, translation).bone_transforms[0].double().numpy()
@@ -302,12 +312,55 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     gap = np.linalg.norm(glb_posed - posed, axis=1) * 1e3
     reported = data["posed"]["frames"][0]["glb_top4_gap_mm"]
     assert gap.max() == pytest.approx(reported["max"], abs=0.05) and gap.mean() == pytest.approx(reported["mean"], abs=0.05)
+    # Without the non-rigid offset, igavatar's posing is full-weight LBS: the drift is that gap.
+    drift = data["posed"]["frames"][0]["glb_drift_mm"]
+    assert drift["4"]["max"] == pytest.approx(reported["max"], abs=0.05)
+    assert drift["8"]["max"] <= drift["4"]["max"] + 1e-6
+    assert data["glb"]["drift_mm"] == {"4": drift["4"]["max"], "8": drift["8"]["max"]}
+    assert data["glb"]["up_axis"] == "+Y" and np.allclose(data["glb"]["world_to_gltf"], axes)
     # And, the same posing with every weight, from the model directly (no non-rigid offset).
     model.avatar.nonrigid.set_enabled(False)
     bone_transforms = torch.from_numpy(np.load(small_run / "dataset" / "frames.npz")["bone_transforms"][k])
     expected = pose_canonical_vertices(model.avatar, np.asarray(canonical.vertices), model.avatar.deformer.prepare(bone_transforms),
                                        torch.zeros(model.manifest["data"]["pose_dim"]))
     assert np.abs(posed - expected).max() < 1e-4
+
+
+def test_exported_glb_is_y_up_with_the_head_above_the_feet(posed_export):
+    """Our GLB read back (pygltflib via read_rigged_glb): the head joint and the top of the mesh lie
+    above the feet along glTF's +Y, and the feet are at the bottom of the mesh."""
+    data = read_rigged_glb(posed_export / "canonical.glb")
+    names = [n.lower() for n in data["joint_names"]]
+    y = data["joints_bind"][:, 1]
+    head = next(i for i, n in enumerate(names) if n == "head")
+    feet = [i for i, n in enumerate(names) if n.startswith("foot")]
+    assert feet, names
+    assert y[head] - y[feet].max() > 1.0  # an adult: > 1 m from the feet to the head, along +Y
+    # The tiny model's surface is a rough blob around the body: it still stands along Y.
+    vertices = data["vertices"]
+    extent = vertices.max(axis=0) - vertices.min(axis=0)
+    assert extent[1] > 2 * extent[2], extent
+    assert y[feet].max() < vertices[:, 1].mean() < y[head]
+
+
+def test_eight_influences_and_drift_per_frame(small_run, tiny_model, tmp_path):
+    out = tmp_path / "mesh8"
+    run_export(ExportOptions(model=tiny_model, out=out, formats=("glb",), resolution=RESOLUTION, influences=8,
+                             pose=small_run / "capture", frame=4, device="cpu"))
+    data = read_artifact(out, expected="mesh")["data"]
+    glb = read_rigged_glb(out / "canonical.glb")
+    assert glb["weights"].shape[1] == 8 and data["glb"]["influences"] == 8
+    np.testing.assert_allclose(glb["weights"].sum(axis=1, dtype=np.float64), 1.0, atol=1e-6)
+    (frame,) = data["posed"]["frames"]
+    # The non-rigid offset is on: both truncations drift from igavatar's posing, 8 no more than 4 + offset.
+    assert 0 < frame["glb_drift_mm"]["8"]["mean"] and frame["glb_drift_mm"]["4"]["max"] < 100
+    assert data["glb"]["drift_mm"]["4"] == frame["glb_drift_mm"]["4"]["max"]
+    # Measured from the files: the GLB's own 8-weight skinning against posed/<frame>.ply.
+    rotations, offset, _ = read_glb_animation(out / "canonical.glb")
+    posed_glb = pose_glb_vertices(out / "canonical.glb", rotations[0], offset[0]) @ np.asarray(data["glb"]["world_to_gltf"])
+    posed = np.asarray(trimesh.load(out / "posed" / f"{frame['name']}.ply", process=False).vertices)
+    gap = np.linalg.norm(posed_glb - posed, axis=1) * 1e3
+    assert gap.max() == pytest.approx(frame["glb_drift_mm"]["8"]["max"], abs=0.05)
 
 
 def _accessor(gltf: pygltflib.GLTF2, path: Path, attribute: str) -> np.ndarray:
