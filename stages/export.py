@@ -63,21 +63,16 @@ from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight, vertex_normals
 from igavatar.mesh.exr import write_exr
 from igavatar.mesh.extract import extract_mesh
-from igavatar.mesh.gltf import (
-    INFLUENCE_CHOICES,
-    INFLUENCES,
-    gltf_axes,
-    pose_relative_to_canonical,
-    srgb_to_linear,
-    top_k_weights,
-    write_rigged_glb,
-)
+from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes, srgb_to_linear, top_k_weights
 from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.mesh.posing import pose_canonical_vertices, vertex_colors, vertex_skin_weights
+from igavatar.mesh.posing import pose_canonical_vertices, surface_colors, vertex_colors, vertex_skin_weights
+from igavatar.mesh.texture import png_bytes
+from igavatar.mesh.textured_mesh import TexturedMesh, textured_mesh, textured_obj
 from igavatar.model.avatar import Avatar
 from igavatar.model.deformer import PreparedFrame
 from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values
+from stages.glb_writer import write_model_glb
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
@@ -92,6 +87,8 @@ cleanup and writing included (measured; 256 takes about 12 s)."""
 COARSE_RESOLUTION = 64
 CAMERA_FOV_DEG = 30.0
 DEFAULT_FPS = 30.0
+DEFAULT_TEXTURED_FACES = 30_000
+"""Face budget of the textured mesh: a game-ready avatar (20-50k faces is the usual range)."""
 _NO_ROOT_SDF = 1.0  # metres: "far outside" for posed points with no canonical correspondence
 _BOX_PAD = 0.02  # of the canonical box's longest side, so the box's cap lies inside the grid
 
@@ -109,6 +106,8 @@ class ExportOptions:
     taubin_steps: int = 0
     target_faces: int | None = None
     influences: int = INFLUENCES
+    texture_size: int = 0
+    textured_faces: int = DEFAULT_TEXTURED_FACES
     pose: Path | None = None
     frame: int | None = None
     all_frames: bool = False
@@ -125,7 +124,8 @@ class ExportOptions:
         return {
             "formats": list(self.formats), "resolution": self.resolution, "coarse_resolution": self.coarse_resolution,
             "min_component_ratio": self.min_component_ratio, "taubin_steps": self.taubin_steps,
-            "target_faces": self.target_faces, "influences": self.influences, "pose": None if self.pose is None else str(self.pose),
+            "target_faces": self.target_faces, "influences": self.influences,
+            "texture_size": self.texture_size, "textured_faces": self.textured_faces, "pose": None if self.pose is None else str(self.pose),
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
         }
@@ -175,6 +175,10 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError(f"--target-faces {options.target_faces}: expected at least 4")
     if options.influences not in INFLUENCE_CHOICES:
         raise InputError(f"--influences {options.influences}: expected 4 (web engines) or 8 (JOINTS_1/WEIGHTS_1 too)")
+    if options.texture_size and not 16 <= options.texture_size <= 8192:
+        raise InputError(f"--texture-size {options.texture_size}: expected 0 (no textured mesh) or 16..8192 pixels")
+    if options.textured_faces < 4:
+        raise InputError(f"--textured-faces {options.textured_faces}: expected at least 4")
     if options.exr_size < 8:
         raise InputError(f"--exr-size {options.exr_size}: expected at least 8 pixels")
     if options.pose is None:
@@ -541,6 +545,40 @@ def _write_maps(tmp: Path, views: list[tuple[str, np.ndarray, np.ndarray]], cano
     return records
 
 
+def _write_textured(tmp: Path, model: LoadedModel, textured: TexturedMesh, options: ExportOptions,
+                    poses: ExportPoses | None) -> dict:
+    """textured/avatar.png, .obj + .mtl and (with glb) the textured, rigged avatar.glb; their manifest record.
+
+    The OBJ is written in glTF's +Y-up frame like the GLB (both are for other tools; canonical.*
+    stay in the capture frame).
+    """
+    folder = tmp / "textured"
+    folder.mkdir()
+    png = png_bytes(textured.image)
+    (folder / "avatar.png").write_bytes(png)
+    files = ["textured/avatar.png"]
+    if "obj" in options.formats:
+        axes = gltf_axes(model.manifest["data"]["body_model"])
+        obj, mtl = textured_obj(textured.vertices.astype(np.float64) @ axes.T, textured.faces, textured.uv,
+                                "avatar.mtl", "avatar.png")
+        (folder / "avatar.obj").write_text(obj)
+        (folder / "avatar.mtl").write_text(mtl)
+        files += ["textured/avatar.obj", "textured/avatar.mtl"]
+    glb = None
+    if "glb" in options.formats:
+        skin_weights = vertex_skin_weights(model.avatar, textured.vertices)
+        motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
+        glb = write_model_glb(folder / "avatar.glb", model, textured.vertices, textured.faces, None, skin_weights,
+                              options.influences, motion=motion, texture=(textured.uv, png))
+        files.append("textured/avatar.glb")
+    return {
+        "files": files, "vertices": int(textured.vertices.shape[0]), "faces": int(textured.faces.shape[0]),
+        "decimated_vertices": textured.decimated_vertices, "target_faces": options.textured_faces,
+        "texture_size": options.texture_size, "texel_coverage": textured.coverage,
+        "bytes": {f: (tmp / f).stat().st_size for f in files}, "glb": glb,
+    }
+
+
 def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Extract, clean, colour, rig and (with --pose) pose the avatar's mesh; write the mesh artifact.
 
@@ -588,14 +626,18 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     tick = time.perf_counter()
     colors = vertex_colors(avatar, vertices)
     timings["colors_s"] = time.perf_counter() - tick
-    parents = np.asarray(subject["parents"], dtype=np.int64)
     skin_weights = None
     if "glb" in options.formats:
         tick = time.perf_counter()
         skin_weights = vertex_skin_weights(avatar, vertices)
         timings["skin_weights_s"] = time.perf_counter() - tick
     canonical = _Canonical(vertices, faces, colors, skin_weights)
-    world_to_gltf = gltf_axes(data["body_model"])
+    textured = None
+    if options.texture_size:
+        tick = time.perf_counter()
+        textured = textured_mesh(vertices, faces, lambda points: surface_colors(avatar, points),
+                                 options.textured_faces, options.texture_size)
+        timings["textured_s"] = time.perf_counter() - tick
 
     canonical_files: list[str] = []
     posed_records: list[dict] = []
@@ -608,23 +650,17 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
             _write_mesh(tmp / f"canonical.{fmt}", vertices, faces, colors)
             canonical_files.append(f"canonical.{fmt}")
         if skin_weights is not None:
-            animation = None
-            if poses is not None:
-                # GLB node rotations are relative to the bind (canonical) pose.
-                relative, offset = pose_relative_to_canonical(
-                    poses.local_rotations.double().numpy(), poses.root_translation.double().numpy(),
-                    subject["canonical_rotations"], np.zeros(3), parents,
-                )
-                animation = (relative, offset, poses.fps)
-            write_rigged_glb(tmp / "canonical.glb", vertices, faces, colors, model.joint_names, parents,
-                             np.asarray(subject["canonical_joints"], dtype=np.float64), skin_weights,
-                             world_to_gltf=world_to_gltf, animation=animation, influences=options.influences)
+            motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
+            facts = write_model_glb(tmp / "canonical.glb", model, vertices, faces, colors, skin_weights,
+                                    options.influences, motion=motion)
             canonical_files.append("canonical.glb")
-            glb_info = {"file": "canonical.glb", "joints": len(model.joint_names), "influences": options.influences,
-                        "animation_frames": 0 if poses is None else len(poses.names),
-                        "fps": None if poses is None else poses.fps,
-                        "up_axis": "+Y", "world_to_gltf": world_to_gltf.tolist(), "drift_mm": None}
+            glb_info = {"file": "canonical.glb", **facts, "drift_mm": None}
         timings["write_canonical_s"] = time.perf_counter() - tick
+        textured_info = None
+        if textured is not None:
+            tick = time.perf_counter()
+            textured_info = _write_textured(tmp, model, textured, options, poses)
+            timings["write_textured_s"] = time.perf_counter() - tick
 
         body_axes = _body_axes(data["body_model"])
         map_views = [("canonical", vertices, body_axes)] if options.exr else []
@@ -673,6 +709,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
                 "bounds": [vertices.min(axis=0).tolist(), vertices.max(axis=0).tolist()],
             },
             "glb": glb_info,
+            "textured": textured_info,
             "posed": None if poses is None else {
                 **poses.description, "nonrigid": bool(avatar.nonrigid.enabled), "frames": posed_records,
             },
@@ -695,6 +732,8 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
         "files": [str(out / f) for f in canonical_files],
         "seconds": round(timings["total_s"], 1),
     }
+    if textured_info is not None:
+        summary["textured"] = [str(out / f) for f in textured_info["files"]]
     if poses is not None:
         summary["posed_frames"] = len(poses.names)
         summary["posed_dir"] = str(out / "posed")

@@ -363,6 +363,40 @@ def test_eight_influences_and_drift_per_frame(small_run, tiny_model, tmp_path):
     assert gap.max() == pytest.approx(frame["glb_drift_mm"]["8"]["max"], abs=0.05)
 
 
+def test_textured_export_bakes_the_colour_field_and_rigs_the_decimated_mesh(small_run, tiny_model, tmp_path):
+    import cv2
+
+    from igavatar.mesh.posing import surface_colors
+
+    out = tmp_path / "mesh"
+    run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128, textured_faces=800,
+                             pose=small_run / "capture", frame=2, device="cpu"))
+    data = read_artifact(out, expected="mesh")["data"]
+    textured = data["textured"]
+    assert set(textured["files"]) == {f"textured/avatar.{ext}" for ext in ("png", "obj", "mtl", "glb")}
+    assert textured["faces"] <= 800 and textured["texture_size"] == 128
+    assert data["canonical"]["faces"] > textured["faces"]  # the full-resolution mesh stays as it was
+
+    glb = read_rigged_glb(out / "textured" / "avatar.glb")
+    assert glb["uv"] is not None and glb["colors"] is None and glb["faces"].shape[0] == textured["faces"]
+    gltf = pygltflib.GLTF2().load(str(out / "textured" / "avatar.glb"))
+    assert gltf.materials[0].pbrMetallicRoughness.baseColorTexture.index == 0
+    assert gltf.images[0].mimeType == "image/png" and len(gltf.animations) == 1
+    # The texture at each vertex's UV is the colour field at that (canonical) vertex.
+    image = cv2.cvtColor(cv2.imread(str(out / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+    texel = glb["uv"] * 128 - 0.5
+    sampled = cv2.remap(image, texel[:, 0].astype(np.float32)[None], texel[:, 1].astype(np.float32)[None],
+                        cv2.INTER_LINEAR)[0]
+    canonical = glb["vertices"].astype(np.float64) @ np.asarray(glb["world_to_gltf"])  # back to the capture frame
+    expected = surface_colors(load_model(tiny_model).avatar, canonical)
+    assert np.median(np.abs(sampled - expected)) < 0.03
+    np.testing.assert_allclose(glb["weights"].sum(axis=1), 1.0, atol=1e-6)
+    # The OBJ (with its MTL and PNG) is the same Y-up mesh.
+    obj = trimesh.load(out / "textured" / "avatar.obj", process=False)
+    assert len(obj.faces) == textured["faces"] and obj.visual.uv is not None
+    assert np.abs(np.asarray(obj.vertices).max(axis=0) - glb["vertices"].max(axis=0)).max() < 1e-4
+
+
 def _accessor(gltf: pygltflib.GLTF2, path: Path, attribute: str) -> np.ndarray:
     """An attribute of the GLB's skinned primitive decoded with pygltflib (independent of igavatar's reader)."""
     accessor = gltf.accessors[getattr(gltf.meshes[0].primitives[0].attributes, attribute)]

@@ -250,7 +250,7 @@ def write_rigged_glb(
     path: str | os.PathLike[str],
     vertices: np.ndarray,
     faces: np.ndarray,
-    colors: np.ndarray,
+    colors: np.ndarray | None,
     joint_names: Sequence[str],
     parents: Sequence[int] | np.ndarray,
     joints_canonical: np.ndarray,
@@ -259,6 +259,7 @@ def write_rigged_glb(
     world_to_gltf: np.ndarray,
     animation: tuple[np.ndarray, np.ndarray, float] | None = None,
     influences: int = INFLUENCES,
+    texture: tuple[np.ndarray, bytes] | None = None,
 ) -> None:
     """Write a skinned mesh whose bind pose is the canonical pose as one GLB (atomically).
 
@@ -266,7 +267,7 @@ def write_rigged_glb(
         path: the .glb file to write.
         vertices: (V, 3) canonical positions in metres.
         faces: (F, 3) vertex indices, counter-clockwise seen from outside.
-        colors: (V, 3) sRGB colours, uint8 or float in [0, 1].
+        colors: (V, 3) sRGB colours, uint8 or float in [0, 1] (None with a texture).
         joint_names: J names (node names in the file).
         parents: (J,) parent indices, -1 for the root at 0, parents before children.
         joints_canonical: (J, 3) joint positions in the canonical pose.
@@ -277,6 +278,9 @@ def write_rigged_glb(
             root_translation (N, 3) offsets from the canonical root position, fps), in the
             caller's frame like the vertices.
         influences: 4 (JOINTS_0/WEIGHTS_0) or 8 (also JOINTS_1/WEIGHTS_1).
+        texture: optional (uv (V, 2) in [0, 1] with v down from the image's top row, as glTF
+            defines TEXCOORD_0; PNG bytes of the sRGB base colour). The image is embedded and
+            the material samples it; `colors` are then not stored (glTF would multiply them).
     """
     path = Path(path)
     v = _as_array(vertices).astype(np.float64)
@@ -294,7 +298,17 @@ def write_rigged_glb(
         raise InputError(f"{path}: faces have shape {f.shape} and dtype {f.dtype}, expected (F, 3) integers")
     if f.min() < 0 or f.max() >= num_vertices:
         raise InputError(f"{path}: faces index [{f.min()}, {f.max()}] but there are {num_vertices} vertices")
-    c = _as_array(colors)
+    uv = None
+    if texture is not None:
+        uv, png = texture
+        uv = _as_array(uv).astype(np.float64)
+        if uv.shape != (num_vertices, 2) or not np.all(np.isfinite(uv)):
+            raise InputError(f"{path}: texture uv have shape {uv.shape}, expected finite ({num_vertices}, 2)")
+        if not isinstance(png, (bytes, bytearray)) or not bytes(png[:8]) == b"\x89PNG\r\n\x1a\n":
+            raise InputError(f"{path}: the texture image must be PNG bytes")
+    if colors is None and uv is None:
+        raise InputError(f"{path}: give vertex colors or a texture")
+    c = np.ones((num_vertices, 3)) if colors is None else _as_array(colors)
     if c.shape != (num_vertices, 3):
         raise InputError(f"{path}: colors have shape {c.shape}, expected ({num_vertices}, 3)")
     c = c / 255.0 if c.dtype == np.uint8 else c.astype(np.float64)
@@ -328,9 +342,13 @@ def write_rigged_glb(
         v.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER, with_bounds=True
     )
     normal_accessor = builder.add(normals.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER)
-    color_accessor = builder.add(
-        srgb_to_linear(c).astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER
-    )
+    surface: dict[str, int] = {}
+    if uv is None:
+        surface["COLOR_0"] = builder.add(
+            srgb_to_linear(c).astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER
+        )
+    else:
+        surface["TEXCOORD_0"] = builder.add(uv.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC2, pygltflib.ARRAY_BUFFER)
     joint_type, joint_dtype = (
         (pygltflib.UNSIGNED_BYTE, np.uint8) if num_joints <= 256 else (pygltflib.UNSIGNED_SHORT, np.uint16)
     )
@@ -376,7 +394,23 @@ def write_rigged_glb(
     mesh_node = num_joints
     nodes.append(pygltflib.Node(name="avatar", mesh=0, skin=0))
 
+    colour = pygltflib.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
+    material = pygltflib.Material(name="vertex_colour" if uv is None else "texture", pbrMetallicRoughness=colour,
+                                  doubleSided=False)
+    images, textures, samplers = [], [], []
+    if uv is not None:
+        builder.blob.extend(b"\0" * (-len(builder.blob) % 4))
+        builder.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(builder.blob), byteLength=len(png)))
+        builder.blob.extend(bytes(png))
+        images = [pygltflib.Image(name="base_colour", mimeType="image/png", bufferView=len(builder.views) - 1)]
+        # Linear filtering with mipmaps; clamp, since the atlas charts never wrap.
+        samplers = [pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                                      wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)]
+        textures = [pygltflib.Texture(sampler=0, source=0)]
+        colour.baseColorTexture = pygltflib.TextureInfo(index=0, texCoord=0)
+
     gltf = pygltflib.GLTF2(
+        images=images, textures=textures, samplers=samplers,
         asset=pygltflib.Asset(
             version="2.0", generator="igavatar",
             extras={"igavatar": {"world_to_gltf": axes.tolist(), "influences": influences}},
@@ -390,7 +424,7 @@ def write_rigged_glb(
                 primitives=[
                     pygltflib.Primitive(
                         attributes=pygltflib.Attributes(
-                            POSITION=positions, NORMAL=normal_accessor, COLOR_0=color_accessor,
+                            POSITION=positions, NORMAL=normal_accessor, **surface,
                             **{f"JOINTS_{n}": a for n, a in enumerate(joint_sets)},
                             **{f"WEIGHTS_{n}": a for n, a in enumerate(weight_sets)},
                         ),
@@ -401,15 +435,7 @@ def write_rigged_glb(
                 ],
             )
         ],
-        materials=[
-            pygltflib.Material(
-                name="vertex_colour",
-                pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                    baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0
-                ),
-                doubleSided=False,
-            )
-        ],
+        materials=[material],
         skins=[
             pygltflib.Skin(
                 name="skeleton", inverseBindMatrices=inverse_bind_accessor, skeleton=0,
@@ -598,7 +624,7 @@ def read_rigged_glb(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The skinned mesh of a GLB written by write_rigged_glb (or any single-primitive skinned GLB).
 
     Returns a dict, in the file's (glTF, +Y up) frame: vertices (V, 3) float32, faces (F, 3)
-    int64, normals (V, 3) or None, colors (V, 3) float sRGB in [0, 1] or None (COLOR_0 is linear
+    int64, normals (V, 3) or None, uv (V, 2) TEXCOORD_0 or None, colors (V, 3) float sRGB in [0, 1] or None (COLOR_0 is linear
     in the file), joint_names (J,), parents (J,) int64 in skin-joint order (-1 for the root),
     joints_bind (J, 3) joint positions from the inverse bind matrices, inverse_bind (J, 4, 4),
     joints (V, 4 S) int64 and weights (V, 4 S) float32 (JOINTS_n/WEIGHTS_n of the S sets side by
@@ -624,6 +650,7 @@ def _read_skinned(gltf: pygltflib.GLTF2, blob: bytes, path: str | os.PathLike[st
     else:
         faces = read_accessor(gltf, blob, primitive.indices).astype(np.int64).reshape(-1, 3)
     normals = None if attributes.NORMAL is None else read_accessor(gltf, blob, attributes.NORMAL)
+    uv = None if attributes.TEXCOORD_0 is None else read_accessor(gltf, blob, attributes.TEXCOORD_0)
     colors = None
     if attributes.COLOR_0 is not None:
         colors = linear_to_srgb(read_accessor(gltf, blob, attributes.COLOR_0)[:, :3])
@@ -653,6 +680,7 @@ def _read_skinned(gltf: pygltflib.GLTF2, blob: bytes, path: str | os.PathLike[st
         "vertices": vertices,
         "faces": faces,
         "normals": normals,
+        "uv": uv,
         "colors": colors,
         "joint_names": [gltf.nodes[n].name for n in joint_nodes],
         "parents": parents,
