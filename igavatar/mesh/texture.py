@@ -210,6 +210,25 @@ def bake_texture(
     return (image * 255).round().astype(np.uint8), covered
 
 
+def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a texture at glTF texture coordinates, as a viewer samples it (clamped).
+
+    Args:
+        image: (H, W, C) texture (row 0 = v 0); uv: (P, 2) in [0, 1], v down.
+    Returns:
+        (P, C) float64 values.
+    """
+    image = np.asarray(image, dtype=np.float64)
+    height, width = image.shape[:2]
+    x = np.clip(np.asarray(uv, np.float64)[:, 0] * width - 0.5, 0, width - 1)
+    y = np.clip(np.asarray(uv, np.float64)[:, 1] * height - 0.5, 0, height - 1)
+    x0, y0 = np.minimum(np.floor(x).astype(np.int64), width - 2), np.minimum(np.floor(y).astype(np.int64), height - 2)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
 def png_bytes(image: np.ndarray) -> bytes:
     """PNG encoding of an (H, W, 3) uint8 RGB image."""
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))

@@ -1,0 +1,243 @@
+"""Interop check of igavatar's GLBs: Khronos glTF validator, Blender import, posed vertices, texture PSNR.
+
+    python tests/benchmarks/interop_check.py --model igavatar-run/model [--pose igavatar-run/capture]
+        [--validator-dir DIR] [--out tests/benchmarks/results/interop] [--frames 0,5,10]
+
+Not part of the test suite, and it installs nothing. It:
+1. exports the model with `--texture-size 1024 --textured-faces 30000 --pose POSE --all` (canonical.glb:
+   rigged, vertex colours, the capture's poses as an animation; textured/avatar.glb: decimated,
+   textured, animated) twice, with 4 and with 8 influences, and runs `animate walk --glb`;
+2. runs the Khronos glTF validator (`npm install gltf-validator` in --validator-dir, then node) on
+   every GLB and records errors/warnings/infos;
+3. if `blender` is on PATH (Debian: `apt-get install blender`), imports each GLB headless
+   (`blender -b --python blender_probe.py`), checks armature, skin, texture and animation,
+   evaluates the skinned mesh at --frames and compares its vertices with igavatar's posed meshes of the
+   same frames (`export --pose` posed/<frame>.ply), against the drift the manifest reports; and
+   renders the textured avatar with Cycles (a PNG to look at);
+4. renders the full-resolution vertex-coloured mesh and the textured decimated mesh from 4 views
+   (igavatar's ray caster, the same cameras) and reports the texture's PSNR against the former.
+Results go to --out/interop.json and interop.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from igavatar.artifacts.manifest import read_artifact  # noqa: E402
+from igavatar.mesh.gltf import read_rigged_glb  # noqa: E402
+from igavatar.mesh.texture import sample_texture  # noqa: E402
+from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values  # noqa: E402
+from stages.animate import AnimateOptions, run_animate  # noqa: E402
+from stages.export import ExportOptions, frontal_camera, run_export  # noqa: E402
+
+PROBE = Path(__file__).with_name("blender_probe.py")
+VALIDATE_JS = """
+const fs = require('fs');
+const validator = require('gltf-validator');
+(async () => {
+  const out = {};
+  for (const path of process.argv.slice(2)) {
+    const report = await validator.validateBytes(new Uint8Array(fs.readFileSync(path)), {maxIssues: 50});
+    out[path] = {numErrors: report.issues.numErrors, numWarnings: report.issues.numWarnings,
+                 numInfos: report.issues.numInfos, numHints: report.issues.numHints,
+                 messages: report.issues.messages.slice(0, 20), validatorVersion: report.validatorVersion,
+                 info: report.info};
+  }
+  console.log(JSON.stringify(out));
+})();
+"""
+
+
+def validate(glbs: list[Path], validator_dir: Path) -> dict:
+    """The Khronos validator's report summary per file (needs node and gltf-validator installed there)."""
+    if shutil.which("node") is None or not (validator_dir / "node_modules" / "gltf-validator").is_dir():
+        return {"skipped": f"node or {validator_dir}/node_modules/gltf-validator missing (npm install gltf-validator)"}
+    script = validator_dir / "validate_igavatar.js"
+    script.write_text(VALIDATE_JS)
+    result = subprocess.run(["node", str(script), *map(str, glbs)], capture_output=True, text=True, cwd=validator_dir)
+    if result.returncode != 0:
+        return {"failed": result.stderr[-2000:]}
+    return json.loads(result.stdout)
+
+
+def blender_probe(glb: Path, frames: list[int], out: Path, render: bool) -> dict:
+    """Import `glb` in headless Blender, evaluate the skinned mesh at `frames`, optionally render."""
+    if shutil.which("blender") is None:
+        return {"skipped": "blender is not on PATH"}
+    args = ["blender", "-b", "--factory-startup", "--python", str(PROBE), "--", str(glb), str(out),
+            ",".join(map(str, frames)), "render" if render else "norender"]
+    started = time.perf_counter()
+    result = subprocess.run(args, capture_output=True, text=True)
+    report_path = out.with_suffix(".json")
+    if result.returncode != 0 or not report_path.is_file():
+        return {"failed": (result.stdout + result.stderr)[-3000:]}
+    report = json.loads(report_path.read_text())
+    report["blender_seconds"] = time.perf_counter() - started
+    return report
+
+
+def to_blender(points: np.ndarray, world_to_gltf: np.ndarray) -> np.ndarray:
+    """Capture-frame points in Blender's frame: glTF's Y-up frame, then Blender's (x, -z, y) import."""
+    gltf = np.asarray(points, np.float64) @ np.asarray(world_to_gltf).T
+    return np.stack((gltf[:, 0], -gltf[:, 2], gltf[:, 1]), axis=1)
+
+
+def compare_frames(probe: dict, mesh_dir: Path, glb_record: dict, frame_names: list[str], picked: list[int],
+                   reference_vertices: int) -> list[dict]:
+    """Blender's evaluated vertices against posed/<frame>.ply (same vertex order when counts match)."""
+    rows = []
+    for k, index in enumerate(picked):
+        posed = np.asarray(trimesh.load(mesh_dir / "posed" / f"{frame_names[index]}.ply", process=False).vertices)
+        ours = to_blender(posed, glb_record["world_to_gltf"])
+        local = np.fromfile(probe["vertex_files"][k], dtype=np.float64).reshape(-1, 3)
+        matrix = np.asarray(probe["matrix_world"][k])
+        theirs = local @ matrix[:3, :3].T + matrix[:3, 3]
+        row = {"frame_index": index, "frame": frame_names[index], "blender_vertices": int(theirs.shape[0]),
+               "igavatar_vertices": int(ours.shape[0])}
+        if theirs.shape == ours.shape:
+            gap = np.linalg.norm(theirs - ours, axis=1) * 1e3
+            row.update(max_mm=float(gap.max()), mean_mm=float(gap.mean()), matching="vertex order")
+        else:  # the importer reordered or merged vertices: nearest igavatar vertex instead
+            from scipy.spatial import cKDTree
+
+            gap = cKDTree(ours).query(theirs)[0] * 1e3
+            row.update(max_mm=float(gap.max()), mean_mm=float(gap.mean()), matching="nearest vertex (upper bound is the true gap)")
+        rows.append(row)
+    return rows
+
+
+def render_views(vertices: np.ndarray, faces: np.ndarray, colour_at_hits, size: int, axes_list) -> list[np.ndarray]:
+    """sRGB float images on white of a mesh from cameras framing it; colour_at_hits(hits) -> (R, 3)."""
+    caster = MeshRayCaster(vertices, faces)
+    images = []
+    for K, w2c in axes_list:
+        rays = CameraRays(K, w2c, size, size, supersample=1)
+        directions = rays.directions.reshape(-1, 3)
+        hits = caster.first_hits(np.broadcast_to(rays.origin, directions.shape), directions)
+        rgb = np.where(hits.hit[:, None], colour_at_hits(hits), 1.0)
+        images.append(rgb.reshape(size, size, 3))
+    return images
+
+
+def texture_psnr(mesh_dir: Path, body_axes: np.ndarray, size: int = 512) -> dict:
+    """PSNR of the textured decimated mesh against the full vertex-coloured mesh, 4 views about the body."""
+    full = trimesh.load(mesh_dir / "canonical.ply", process=False)
+    glb = read_rigged_glb(mesh_dir / "textured" / "avatar.glb")
+    texture = cv2.cvtColor(cv2.imread(str(mesh_dir / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+    world = glb["vertices"].astype(np.float64) @ glb["world_to_gltf"]  # back to the capture frame
+    cameras = []
+    for angle in (0.0, 90.0, 180.0, 270.0):
+        turn = np.deg2rad(angle)
+        # Rotate the body's left and forward axes about its up axis: front, side, back, side.
+        left, up, forward = body_axes.T
+        axes = np.stack((np.cos(turn) * left + np.sin(turn) * forward, up,
+                         -np.sin(turn) * left + np.cos(turn) * forward), axis=1)
+        cameras.append(frontal_camera(np.asarray(full.vertices), axes, size))
+    colours = np.asarray(full.visual.vertex_colors)[:, :3] / 255.0
+    reference = render_views(np.asarray(full.vertices), np.asarray(full.faces),
+                             lambda hits: interpolate_vertex_values(colours, np.asarray(full.faces), hits), size, cameras)
+
+    def sample(hits):
+        return sample_texture(texture, interpolate_vertex_values(glb["uv"], glb["faces"], hits))
+
+    textured = render_views(world, glb["faces"], sample, size, cameras)
+    rows = []
+    for name, a, b in zip(("front", "left", "back", "right"), reference, textured):
+        mse = float(np.mean((a - b) ** 2))
+        rows.append({"view": name, "psnr_db": float(10 * np.log10(1.0 / max(mse, 1e-12)))})
+    sheet = np.concatenate([np.concatenate(reference, axis=1), np.concatenate(textured, axis=1)], axis=0)
+    cv2.imwrite(str(mesh_dir.parent / "psnr_views.png"), cv2.cvtColor((sheet * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
+    return {"views": rows, "mean_psnr_db": float(np.mean([r["psnr_db"] for r in rows])), "size": size,
+            "sheet": str(mesh_dir.parent / "psnr_views.png"),
+            "note": "top row: full vertex-coloured mesh; bottom: decimated textured mesh; white background"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--model", type=Path, default=Path("igavatar-run/model"))
+    parser.add_argument("--pose", type=Path, default=None, help="pose source for the animated export (default: the model's capture)")
+    parser.add_argument("--out", type=Path, default=REPO / "tests" / "benchmarks" / "results" / "interop")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/igavatar-interop"))
+    parser.add_argument("--validator-dir", type=Path, default=Path("/tmp/gltfval"))
+    parser.add_argument("--frames", default="0,3,6", help="frame indices of --pose compared in Blender")
+    parser.add_argument("--resolution", type=int, default=512)
+    parser.add_argument("--texture-size", type=int, default=1024)
+    parser.add_argument("--textured-faces", type=int, default=30_000)
+    parser.add_argument("--reuse", action="store_true", help="reuse the exports and animation already in --work")
+    args = parser.parse_args()
+    picked = [int(f) for f in args.frames.split(",")]
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.work.mkdir(parents=True, exist_ok=True)
+    model_manifest = read_artifact(args.model, expected="model")
+    pose = args.pose
+    if pose is None:
+        dataset = Path(model_manifest["inputs"][0]["path"])
+        pose = Path(read_artifact(dataset, expected="dataset")["inputs"][0]["path"])
+    report: dict = {"model": str(args.model), "pose": str(pose), "exports": {}}
+
+    glbs: list[Path] = []
+    for influences in (4, 8):
+        out = args.work / f"mesh{influences}"
+        started = time.perf_counter()
+        summary = run_export(ExportOptions(
+            model=args.model, out=out, resolution=args.resolution, pose=pose, all_frames=True, influences=influences,
+            texture_size=args.texture_size, textured_faces=args.textured_faces, force=not args.reuse, device="cpu",
+        ))
+        data = read_artifact(out, expected="mesh")
+        report["exports"][str(influences)] = {
+            "seconds": time.perf_counter() - started, "summary": summary,
+            "timings": data["timings"], "glb": data["data"]["glb"], "textured": data["data"]["textured"],
+            "bytes": {p.name: p.stat().st_size for p in [out / "canonical.glb", out / "canonical.ply"]},
+        }
+        glbs += [out / "canonical.glb", out / "textured" / "avatar.glb"]
+    started = time.perf_counter()
+    if not (args.reuse and (args.work / "animation" / "animation.glb").is_file()):
+        run_animate(AnimateOptions(model=args.model, out=args.work / "animation", motion="walk", frames=30, glb=True,
+                                   meshes=True, resolution=128, samples=16, device="cpu"))
+    animation = read_artifact(args.work / "animation", expected="animation")["data"]
+    report["animate"] = {"seconds": time.perf_counter() - started, "glb": animation["glb"]}
+    glbs.append(args.work / "animation" / "animation.glb")
+
+    report["validator"] = validate(glbs, args.validator_dir)
+
+    report["blender"] = {}
+    for influences in (4, 8):
+        mesh_dir = args.work / f"mesh{influences}"
+        data = read_artifact(mesh_dir, expected="mesh")["data"]
+        names = [f["name"] for f in data["posed"]["frames"]]
+        for label, glb in (("canonical", mesh_dir / "canonical.glb"), ("textured", mesh_dir / "textured" / "avatar.glb")):
+            probe = blender_probe(glb, picked, args.work / f"blender_{label}{influences}",
+                                  render=(label == "textured" and influences == 4))
+            if "vertex_files" in probe and label == "canonical":
+                probe["frames_vs_export_pose"] = compare_frames(probe, mesh_dir, data["glb"], names, picked,
+                                                                data["canonical"]["vertices"])
+                probe["reported_drift_mm"] = {str(i): data["posed"]["frames"][i]["glb_drift_mm"] for i in picked}
+            report["blender"][f"{label}_{influences}"] = probe
+            if probe.get("render"):
+                shutil.copy(probe["render"], args.out / "blender_textured_render.png")
+    report["blender"]["animation_walk"] = blender_probe(args.work / "animation" / "animation.glb", [0, 15, 29],
+                                                        args.work / "blender_walk", render=False)
+
+    from igavatar.body.motions import body_to_world
+
+    report["texture_psnr"] = texture_psnr(args.work / "mesh4", body_to_world("anny"))
+    shutil.copy(report["texture_psnr"]["sheet"], args.out / "psnr_views.png")
+    (args.out / "interop.json").write_text(json.dumps(report, indent=1, default=str))
+    print(json.dumps({k: report[k] for k in ("validator", "texture_psnr")}, indent=1, default=str)[:6000])
+
+
+if __name__ == "__main__":
+    main()
