@@ -6,9 +6,15 @@
 Mesh layout (schema `mesh`, version 1; every position in metres):
     canonical.ply, canonical.obj   the canonical-space surface with sRGB vertex colours
     canonical.glb                  rigged: the same mesh, the skeleton (joints named, bind pose = the
-                                   canonical pose), the 4 largest skinning weights per vertex and the
-                                   vertex colours; with --pose it also holds the exported frames as
-                                   an animation (linear blend skinning only: no non-rigid offset)
+                                   canonical pose), the 4 (--influences 8: 8, as JOINTS_0/1) largest
+                                   skinning weights per vertex and the vertex colours, in glTF's
+                                   +Y-up, +Z-forward frame (the capture's axes rotated in, see
+                                   igavatar.mesh.gltf); with --pose it also holds the exported frames
+                                   as an animation (linear blend skinning only: no non-rigid offset)
+    textured/avatar.glb|.obj|.mtl|.png   --texture-size S: the canonical mesh decimated to
+                                   --textured-faces (pymeshlab quadric), UV-unwrapped (xatlas), the
+                                   colour field baked per texel into an S x S PNG (seams dilated);
+                                   the GLB is rigged (and animated) like canonical.glb; both Y-up
     posed/<frame>.ply|.obj         the avatar in each exported pose, in WORLD coordinates (root
                                    transform applied): forward LBS of the canonical mesh plus the
                                    pose-conditioned non-rigid offset; same faces as canonical
@@ -29,8 +35,10 @@ named as in capture.json) or a dataset artifact (its stored bone transforms: no 
 needed). Anny poses are read with the phenotype recorded in the model (needs `anny`); SMPL
 sequences are recognised and refused, since retargeting them to Anny's skeleton is not available.
 `--frame K` picks one frame (default 0), `--all` every frame. Posed meshes use every skinning
-weight of the grid; the GLB keeps the 4 largest (what every glTF viewer reads), and each posed
-frame's manifest record gives the distance between the two skinnings (glb_top4_gap_mm).
+weight of the grid and the non-rigid offset; the GLB keeps the 4 largest (what every glTF viewer
+reads) or 8, and each posed frame's manifest record gives the distance between the GLB's top-4
+skinning and full-weight LBS (glb_top4_gap_mm), and between top-4 / top-8 skinning and the posed
+mesh itself (glb_drift_mm, mm, max and mean); glb.drift_mm is the largest over the frames.
 `--exr` views: a frontal camera (the body's forward axis, rotated with the root in posed frames)
 framing the mesh, for the canonical mesh and each exported frame; maps are ray-cast from the
 exported meshes (Embree), so they match the files exactly.
