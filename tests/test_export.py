@@ -446,7 +446,8 @@ def test_cli_export_json_and_skip_when_unchanged(small_run, tiny_model, cli_runn
     read_artifact(small_run / "dataset", expected="dataset")
 
 
-@pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "other-skeleton", "frame-range", "frame-without-pose", "no-pose-file"])
+@pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "other-skeleton", "frame-range", "frame-without-pose", "no-pose-file",
+                                  "influences", "texture-size"])
 def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_runner, tmp_path, case):
     np.savez(tmp_path / "bad.npz", pose_parameters=np.zeros((2, 104, 4, 3)))
     # A bare 3-joint skeleton: no retarget exists onto Anny (SMPL sequences are retargeted).
@@ -459,6 +460,8 @@ def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_ru
         "frame-range": (tiny_model, ["--pose", str(small_run / "capture"), "--frame", "99"], 2, "--frame 99"),
         "frame-without-pose": (tiny_model, ["--frame", "1"], 2, "--frame needs --pose"),
         "no-pose-file": (tiny_model, ["--pose", str(tmp_path / "missing.npz")], 2, "no such file"),
+        "influences": (tiny_model, ["--influences", "6"], 2, "--influences 6: expected 4"),
+        "texture-size": (tiny_model, ["--texture-size", "8"], 2, "--texture-size 8: expected 0"),
     }[case]
     out = tmp_path / "mesh"
     result = cli_runner.invoke(app, ["export", "--model", str(model), "--out", str(out), "--resolution", "16", *extra])

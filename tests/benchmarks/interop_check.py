@@ -226,6 +226,61 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
             "note": "PSNR inside the capture's subject mask; sheet rows: capture image, full vertex-coloured, textured"}
 
 
+def markdown(report: dict) -> str:
+    """The human-readable summary of a report (interop.md)."""
+    lines = ["# GLB interop check", "", f"Model `{report['model']}`, poses `{report['pose']}`.", "",
+             "## Khronos glTF validator", "", "| file | errors | warnings | infos | hints |", "|---|---|---|---|---|"]
+    for path, result in report["validator"].items():
+        if isinstance(result, dict) and "numErrors" in result:
+            lines.append(f"| {'/'.join(Path(path).parts[-3:])} | {result['numErrors']} | {result['numWarnings']} | "
+                         f"{result['numInfos']} | {result['numHints']} |")
+        else:
+            lines.append(f"| {path} | {result} | | | |")
+    lines += ["", "## Blender (headless import)", "",
+              "| GLB | bones | vertices | max influences | texture | action frames | head above feet (m, Blender Z) | moved between keys (mm) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for label, probe in report["blender"].items():
+        if "failed" in probe or "skipped" in probe:
+            lines.append(f"| {label} | {probe.get('skipped') or 'failed'} | | | | | | |")
+            continue
+        action = probe.get("action") or {}
+        texture = ", ".join(f"{t['size'][0]}x{t['size'][1]}" + (" -> Base Color" if t["to_base_color"] else "")
+                            for t in probe.get("textures", [])) or "vertex colours"
+        lines.append(f"| {label} | {probe.get('bones')} | {probe['vertices']} | {probe['max_influences']} | {texture} | "
+                     f"{action.get('frame_range')} | {probe.get('head_above_feet_m', float('nan')):.3f} | "
+                     f"{probe.get('motion_between_keys_mm', 0):.0f} |")
+    lines += ["", "## Blender's skinned vertices vs `igavatar export --pose` (same frames)", "",
+              "| GLB | frame | Blender vs igavatar max / mean (mm) | manifest drift max / mean (mm) |", "|---|---|---|---|"]
+    for label, probe in report["blender"].items():
+        influences = label.rsplit("_", 1)[-1]
+        for row in probe.get("frames_vs_export_pose", []) or []:
+            drift = probe["reported_drift_mm"][str(row["frame_index"])][influences]
+            lines.append(f"| {label} | {row['frame']} | {row['max_mm']:.2f} / {row['mean_mm']:.2f} ({row['matching']}) | "
+                         f"{drift['max']:.2f} / {drift['mean']:.2f} |")
+    walk = report.get("animate", {}).get("glb")
+    if walk:
+        lines += ["", f"`animate walk --glb` (30 frames): drift max top-4 {walk['drift_mm']['4']:.1f} mm, "
+                      f"top-8 {walk['drift_mm']['8']:.1f} mm over the frames."]
+    lines += ["", "## Texture", ""]
+    for influences, export in report["exports"].items():
+        textured = export["textured"]
+        timings = export["timings"]
+        lines.append(f"- export with {influences} influences: textured {textured['faces']} faces, "
+                     f"{textured['vertices']} vertices, {textured['texture_size']} px, texel coverage "
+                     f"{textured['texel_coverage']:.2f}; files {textured['bytes']}; canonical.glb "
+                     f"{export['bytes']['canonical.glb']} B; textured mesh build {timings.get('textured_s', float('nan')):.1f} s, "
+                     f"whole export {timings['total_s']:.1f} s")
+    psnr = report["texture_psnr"]
+    lines.append(f"- textured vs full vertex-coloured render, 4 views ({psnr['size']} px): "
+                 + ", ".join(f"{r['view']} {r['psnr_db']:.2f} dB" for r in psnr["views"]) + f"; mean {psnr['mean_psnr_db']:.2f} dB")
+    capture = report.get("capture_psnr")
+    if capture:
+        lines.append(f"- against the capture's images (inside the mask, 4 training views): full vertex-coloured "
+                     f"{capture['mean_full_vertex_colour_psnr_db']:.2f} dB, textured {capture['mean_textured_psnr_db']:.2f} dB "
+                     f"(difference {capture['textured_minus_full_db']:+.2f} dB)")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--model", type=Path, default=Path("igavatar-run/model"))
@@ -300,6 +355,7 @@ def main() -> None:
         report["capture_psnr"] = capture_psnr(args.work / "mesh4", args.model, pose)
         shutil.copy(report["capture_psnr"]["sheet"], args.out / "capture_psnr_views.png")
     (args.out / "interop.json").write_text(json.dumps(report, indent=1, default=str))
+    (args.out / "interop.md").write_text(markdown(report))
     print(json.dumps({k: report.get(k) for k in ("texture_psnr", "capture_psnr")}, indent=1, default=str)[:6000])
 
 
