@@ -48,7 +48,7 @@ from igavatar.mesh.cleanup import clean_mesh
 from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.mesh.posing import canonical_mesh, pose_canonical_vertices, vertex_colors, vertex_skin_weights
-from igavatar.mesh.skin_drift import skin_drift_mm
+from igavatar.mesh.skin_drift import skin_drift_mm, sparse_weight_sets
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import resize_intrinsics, turntable_cameras
 from stages.glb_writer import write_model_glb
@@ -487,6 +487,7 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         surface = _canonical_surface(model, options.mesh_resolution)
         if options.glb:
             skin_weights = vertex_skin_weights(model.avatar, surface[0])
+            sparse_sets = sparse_weight_sets(skin_weights)
         timings["canonical_mesh_s"] = time.perf_counter() - tick
     drift: list[dict] = []
 
@@ -526,7 +527,7 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
                         if options.meshes:
                             (tmp / "meshes" / f"{name}.ply").write_bytes(_ply_bytes(x_posed, surface[1], surface[2]))
                         if skin_weights is not None:
-                            drift.append(skin_drift_mm(surface[0], skin_weights, bone_transforms[i], x_posed))
+                            drift.append(skin_drift_mm(surface[0], sparse_sets, bone_transforms[i], x_posed))
                         mesh_seconds += time.perf_counter() - tick
                     rate = (i + 1) / max(render_seconds, 1e-9)
                     advance(1, **{"frames/s": f"{rate:.3f}"})

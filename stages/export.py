@@ -71,8 +71,8 @@ from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight, vertex_normals
 from igavatar.mesh.exr import write_exr
 from igavatar.mesh.extract import extract_mesh
-from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes, srgb_to_linear, top_k_weights
-from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm
+from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes, srgb_to_linear
+from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm, sparse_weight_sets
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.mesh.posing import pose_canonical_vertices, surface_colors, vertex_colors, vertex_skin_weights
 from igavatar.mesh.texture import png_bytes
@@ -484,6 +484,7 @@ class _Canonical:
     faces: np.ndarray  # (F, 3) int64
     colors: np.ndarray  # (V, 3) uint8 sRGB
     skin_weights: np.ndarray | None  # (V, J) full grid weights, when a GLB is written
+    sparse_sets: dict | None  # {4: (joints, weights), 8: ...} top-k of skin_weights (sparse_weight_sets)
 
 
 def _export_frame(
@@ -509,11 +510,11 @@ def _export_frame(
         # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset),
         x_canonical = torch.from_numpy(canonical.vertices).to(avatar.canonical_box.device)
         full_lbs = avatar.deformer.forward_skinning(x_canonical, frame).cpu().numpy()
-        joints, weights = top_k_weights(canonical.skin_weights, 4)
+        joints, weights = canonical.sparse_sets[4]
         gap = np.linalg.norm(lbs_sparse(canonical.vertices, joints, weights, transforms) - full_lbs, axis=1)
         record["glb_top4_gap_mm"] = {"max": float(gap.max() * 1e3), "mean": float(gap.mean() * 1e3)}
         # and how far top-4 and top-8 skinning land from igavatar's own posing (offset included).
-        record["glb_drift_mm"] = skin_drift_mm(canonical.vertices, canonical.skin_weights, transforms, x_posed)
+        record["glb_drift_mm"] = skin_drift_mm(canonical.vertices, canonical.sparse_sets, transforms, x_posed)
     if not options.posed_marching:
         return record, None, x_posed
 
@@ -639,7 +640,8 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
         tick = time.perf_counter()
         skin_weights = vertex_skin_weights(avatar, vertices)
         timings["skin_weights_s"] = time.perf_counter() - tick
-    canonical = _Canonical(vertices, faces, colors, skin_weights)
+    canonical = _Canonical(vertices, faces, colors, skin_weights,
+                           None if skin_weights is None else sparse_weight_sets(skin_weights))
     textured = None
     if options.texture_size:
         tick = time.perf_counter()

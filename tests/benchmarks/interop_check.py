@@ -281,6 +281,37 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def capture_subset(capture: Path, count: int, dest: Path) -> Path:
+    """A capture v1 directory holding `count` training frames spread over the turn (front, side, ...).
+
+    Exporting every frame of a long capture at full resolution takes minutes per frame on two
+    shared cores; the check needs only a few. Images and masks are linked, arrays sliced.
+    """
+    meta = json.loads((capture / "capture.json").read_text())
+    names = [f if isinstance(f, str) else f["name"] for f in meta["frames"]]
+    train = [f if isinstance(f, str) else f["name"] for f in meta["splits"]["train"]]
+    chosen = [train[round(i * len(train) / count)] for i in range(count)]
+    index = [names.index(n) for n in chosen]
+    if dest.exists():
+        shutil.rmtree(dest)
+    (dest / "images").mkdir(parents=True)
+    (dest / "masks").mkdir()
+    for name in chosen:
+        for folder in ("images", "masks"):
+            if (capture / folder / f"{name}.png").is_file():
+                (dest / folder / f"{name}.png").symlink_to(capture / folder / f"{name}.png")
+    meta["frames"] = [meta["frames"][i] for i in index]
+    meta["splits"] = {"train": chosen, "test": []}
+    (dest / "capture.json").write_text(json.dumps(meta))
+    per_frame = len(names)
+    for file in ("poses.npz", "cameras.npz"):
+        with np.load(capture / file) as arrays:
+            sliced = {k: (v[index] if v.ndim and v.shape[0] == per_frame and k not in ("K", "w2c") or
+                          (k in ("K", "w2c") and v.ndim == 3) else v) for k, v in arrays.items()}
+        np.savez(dest / file, **sliced)
+    return dest
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--model", type=Path, default=Path("igavatar-run/model"))
@@ -288,7 +319,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "tests" / "benchmarks" / "results" / "interop")
     parser.add_argument("--work", type=Path, default=Path("/tmp/igavatar-interop"))
     parser.add_argument("--validator-dir", type=Path, default=Path("/tmp/gltfval"))
-    parser.add_argument("--frames", default="0,3,6", help="frame indices of --pose compared in Blender")
+    parser.add_argument("--frames", default="0,1,2", help="frame indices of the exported poses compared in Blender")
+    parser.add_argument("--views", type=int, default=4,
+                        help="with a capture as --pose: export only this many training frames spread over the turn (0: all)")
     parser.add_argument("--resolution", type=int, default=512)
     parser.add_argument("--texture-size", type=int, default=1024)
     parser.add_argument("--textured-faces", type=int, default=30_000)
@@ -302,6 +335,8 @@ def main() -> None:
     if pose is None:
         dataset = Path(model_manifest["inputs"][0]["path"])
         pose = Path(read_artifact(dataset, expected="dataset")["inputs"][0]["path"])
+    if args.views and (pose / "capture.json").is_file():
+        pose = capture_subset(pose, args.views, args.work / "capture_subset")
     report: dict = {"model": str(args.model), "pose": str(pose), "exports": {}}
 
     glbs: list[Path] = []
