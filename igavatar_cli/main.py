@@ -256,7 +256,7 @@ def export(
     model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\[default: RUN_DIR/mesh].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
-    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colours), glb (rigged).")] = "ply,obj,glb",
+    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colours), glb (rigged, Y-up; with --pose animated).")] = "ply,obj,glb",
     resolution: Annotated[
         int, typer.Option(help="Marching-cubes samples on the longest axis of the surface box (the paper's 512; ~20-45 s on 2 CPU cores).", min=16)
     ] = 512,
@@ -266,6 +266,13 @@ def export(
     ] = None,
     taubin_steps: Annotated[int, typer.Option(help="Taubin smoothing iterations (0: none).", min=0)] = 0,
     target_faces: Annotated[Optional[int], typer.Option(help="Decimate to at most this many faces.", min=4)] = None,
+    influences: Annotated[
+        int, typer.Option(help="Skin weights per vertex in the GLB: 4 (JOINTS_0; web engines) or 8 (JOINTS_0/1; Blender).")
+    ] = 4,
+    texture_size: Annotated[
+        int, typer.Option(help="Also write textured/avatar.glb|.obj|.png: decimated, UV-unwrapped, colour baked into an SxS texture (e.g. 1024 or 2048; 0: none).", min=0)
+    ] = 0,
+    textured_faces: Annotated[int, typer.Option(help="Face budget of the textured mesh (quadric decimation).", min=4)] = 30_000,
     pose: Annotated[
         Optional[Path], typer.Option(help="Pose the avatar: a pose .npz (capture v1 Anny poses.npz), a capture directory or a dataset artifact.")
     ] = None,
@@ -291,7 +298,8 @@ def export(
     options = ExportOptions(
         model=model or layout.model, out=out or layout.mesh, formats=parse_formats(formats), resolution=resolution,
         coarse_resolution=coarse_resolution, min_component_ratio=min_component_ratio, taubin_steps=taubin_steps,
-        target_faces=target_faces, pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
+        target_faces=target_faces, influences=influences, texture_size=texture_size, textured_faces=textured_faces,
+        pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
         posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
@@ -321,13 +329,15 @@ def animate(
     resolution: Annotated[int, typer.Option(help="Longer image side in pixels.", min=8)] = 256,
     samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\[default: the model's validation setting].", min=1)] = None,
     meshes: Annotated[bool, typer.Option(help="Also write the posed mesh of every frame (meshes/NNNN.ply).")] = False,
-    mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh for --meshes.", min=16)] = 256,
+    mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh for --meshes and --glb.", min=16)] = 256,
+    glb: Annotated[bool, typer.Option(help="Also write animation.glb: the rigged avatar (Y-up) playing the motion as a glTF animation clip.")] = False,
+    influences: Annotated[int, typer.Option(help="Skin weights per vertex in the --glb file: 4 (web engines) or 8 (Blender).")] = 4,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory (Anny pose files) \\[default: ~/.cache/anny].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
-    """Render the avatar driven by a motion: PNG frames, an mp4 and optionally posed meshes per frame."""
+    """Render the avatar driven by a motion: PNG frames, an mp4, optionally posed meshes per frame and an animated GLB."""
     from igavatar.errors import InputError
     from igavatar_cli.progress import progress_sink
     from stages.animate import AnimateOptions, run_animate
@@ -339,7 +349,7 @@ def animate(
         model=model or layout.model, out=out or layout.animation, motion=motion_arg or motion or "walk",
         seconds=seconds, fps=fps, frames=frames, travel=travel, seed=seed, camera=camera, camera_file=camera_file,
         dataset=dataset, revolutions=revolutions, resolution=resolution, samples=samples, meshes=meshes,
-        mesh_resolution=mesh_resolution, device=device, anny_cache=anny_cache,
+        mesh_resolution=mesh_resolution, glb=glb, influences=influences, device=device, anny_cache=anny_cache,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_animate(options, progress=progress)

@@ -17,6 +17,12 @@ Animation layout (schema `animation`, version 1):
                          (J,3), joint_names (J,), rotvecs (N,J,3) relative to the rest pose, transl (N,3)
     boxes.npz            posed_boxes (N,2,3) world boxes the frames were rendered in
     meshes/<NNNN>.ply    with --meshes: the posed surface per frame (world coordinates, vertex colours)
+    animation.glb        with --glb: the rigged avatar (canonical surface at --mesh-resolution, vertex
+                         colours, top-4 or --influences 8 skin weights, glTF's +Y-up frame) holding the
+                         motion as one glTF animation clip: a rotation channel per joint and the root's
+                         translation, one LINEAR key per frame at the motion's fps. The manifest gives,
+                         per frame, how far the viewer's top-4 and top-8 skinning land from igavatar's
+                         own posing (all weights + non-rigid offset), in mm.
 """
 
 from __future__ import annotations
@@ -40,10 +46,13 @@ from igavatar.body.rotations import matrix_to_axis_angle
 from igavatar.body.skeleton import Skeleton
 from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh
+from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.mesh.posing import canonical_mesh, pose_canonical_vertices, vertex_colors
+from igavatar.mesh.posing import canonical_mesh, pose_canonical_vertices, vertex_colors, vertex_skin_weights
+from igavatar.mesh.skin_drift import skin_drift_mm, sparse_weight_sets
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import resize_intrinsics, turntable_cameras
+from stages.glb_writer import write_model_glb
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
@@ -82,6 +91,8 @@ class AnimateOptions:
     samples: int | None = None
     meshes: bool = False
     mesh_resolution: int = 256
+    glb: bool = False
+    influences: int = INFLUENCES
     device: str = "auto"
     anny_cache: Path | None = None
 
@@ -422,10 +433,10 @@ def _ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> b
 
 
 def _canonical_surface(model: LoadedModel, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Canonical mesh (largest component) and its vertex colours, for --meshes."""
+    """Canonical mesh (largest component) and its vertex colours, for --meshes and --glb."""
     vertices, faces = canonical_mesh(model.avatar, resolution=resolution)
     if faces.shape[0] == 0:
-        raise InputError(f"--meshes: the model {model.path} has no surface (its SDF never crosses zero); train it longer")
+        raise InputError(f"--meshes/--glb: the model {model.path} has no surface (its SDF never crosses zero); train it longer")
     vertices, faces, _ = clean_mesh(vertices, faces, keep_largest=True)
     return vertices, faces, vertex_colors(model.avatar, vertices)
 
@@ -443,18 +454,20 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         raise InputError(f"--resolution {options.resolution}: expected at least 8 pixels")
     if options.samples is not None and options.samples < 1:
         raise InputError(f"--samples {options.samples}: expected at least 1")
-    if options.meshes and options.mesh_resolution < 16:
+    if (options.meshes or options.glb) and options.mesh_resolution < 16:
         raise InputError(f"--mesh-resolution {options.mesh_resolution}: expected at least 16")
     out = Path(options.out)
     motion_path = Path(options.motion) if options.motion not in MOTION_NAMES else None
     output_inputs = [Path(options.model), motion_path, options.camera_file, options.dataset]
     check_output_target(out, "animation", output_inputs)
     require_memory(options.resolution**2 * IMAGE_BYTES_PER_PIXEL, f"--resolution {options.resolution} (each rendered frame)")
+    if options.influences not in INFLUENCE_CHOICES:
+        raise InputError(f"--influences {options.influences}: expected 4 (web engines) or 8 (JOINTS_1/WEIGHTS_1 too)")
     device = resolve_device(options.device)
     build_kernels(device, progress)
     if not (Path(options.model) / "manifest.json").is_file():
         raise ArtifactError(f"{options.model}: no model artifact there; run `igavatar train` first, or pass --model DIR")
-    if options.meshes:
+    if options.meshes or options.glb:
         require_marching_memory(read_manifest(Path(options.model))["data"]["canonical_box"], options.mesh_resolution,
                                 f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     model = load_model(Path(options.model), device)
@@ -476,19 +489,23 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
     timings["pose_s"] = time.perf_counter() - tick
     num_samples = options.samples or model.config.validation_samples
 
-    surface = None
-    if options.meshes:
+    surface = skin_weights = None
+    if options.meshes or options.glb:
         tick = time.perf_counter()
-        progress.status(f"extracting the canonical surface at {options.mesh_resolution}^3 for --meshes")
+        progress.status(f"extracting the canonical surface at {options.mesh_resolution}^3 for --meshes/--glb")
         surface = _canonical_surface(model, options.mesh_resolution)
+        if options.glb:
+            skin_weights = vertex_skin_weights(model.avatar, surface[0])
+            sparse_sets = sparse_weight_sets(skin_weights)
         timings["canonical_mesh_s"] = time.perf_counter() - tick
+    drift: list[dict] = []
 
     width_digits = max(4, len(str(n_frames - 1)))
     coverage: list[float] = []
     render_seconds = mesh_seconds = render_cpu_seconds = 0.0
     with atomic_directory(out, kind="animation", inputs=output_inputs) as tmp:
         (tmp / "frames").mkdir()
-        if surface is not None:
+        if options.meshes:
             (tmp / "meshes").mkdir()
         writer = imageio.get_writer(
             tmp / "video.mp4", fps=motion.fps, codec="libx264", quality=8, macro_block_size=1,
@@ -515,7 +532,10 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
                         tick = time.perf_counter()
                         frame = model.avatar.deformer.prepare(bone_transforms[i])
                         x_posed = pose_canonical_vertices(model.avatar, surface[0], frame, pose_condition[i])
-                        (tmp / "meshes" / f"{name}.ply").write_bytes(_ply_bytes(x_posed, surface[1], surface[2]))
+                        if options.meshes:
+                            (tmp / "meshes" / f"{name}.ply").write_bytes(_ply_bytes(x_posed, surface[1], surface[2]))
+                        if skin_weights is not None:
+                            drift.append(skin_drift_mm(surface[0], sparse_sets, bone_transforms[i], x_posed))
                         mesh_seconds += time.perf_counter() - tick
                     rate = (i + 1) / max(render_seconds, 1e-9)
                     advance(1, **{"frames/s": f"{rate:.3f}"})
@@ -534,6 +554,20 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
             transl=motion.root_translation.float().numpy(),
         )
         np.savez_compressed(tmp / "boxes.npz", posed_boxes=boxes.cpu().numpy())
+        glb_info = None
+        if skin_weights is not None:
+            tick = time.perf_counter()
+            facts = write_model_glb(
+                tmp / "animation.glb", model, surface[0], surface[1], surface[2], skin_weights, options.influences,
+                motion=(motion.local_rotations, motion.root_translation, motion.fps),
+            )
+            glb_info = {
+                "file": "animation.glb", **facts,
+                "drift_mm": {k: max(d[k]["max"] for d in drift) for k in ("4", "8")},
+                "drift_mm_per_frame": {k: [d[k]["max"] for d in drift] for k in ("4", "8")},
+                "drift_reference": "igavatar's posing of the same vertices: every skinning weight + non-rigid offset",
+            }
+            timings["glb_s"] = time.perf_counter() - tick
         fps_rendered = n_frames / max(render_seconds, 1e-9)
         union = torch.stack((boxes[:, 0].amin(dim=0), boxes[:, 1].amax(dim=0))).cpu()
         data = {
@@ -548,8 +582,9 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
             "resolution": [cameras.height, cameras.width],
             "samples_per_ray": num_samples,
             "video": "video.mp4",
-            "meshes": n_frames if surface is not None else 0,
+            "meshes": n_frames if options.meshes else 0,
             "mesh_vertices": int(surface[0].shape[0]) if surface is not None else None,
+            "glb": glb_info,
             "posed_box_union": union.tolist(),
             "min_subject_fraction": min(coverage),
             "speed": {"frames_per_second": fps_rendered, "seconds_per_frame": render_seconds / n_frames,
@@ -573,6 +608,7 @@ def run_animate(options: AnimateOptions, progress: ProgressSink = NULL_PROGRESS)
         "frames_per_s": round(fps_rendered, 3), "render_seconds": round(render_seconds, 1),
         "video": str(out / "video.mp4"),
         "sample_frames": [str(out / "frames" / f"{i:0{width_digits}d}.png") for i in picks],
-        "meshes": str(out / "meshes") if surface is not None else None,
+        "meshes": str(out / "meshes") if options.meshes else None,
+        "glb": str(out / "animation.glb") if glb_info is not None else None,
         "seconds": round(time.perf_counter() - started, 1),
     }

@@ -6,9 +6,15 @@
 Mesh layout (schema `mesh`, version 1; every position in metres):
     canonical.ply, canonical.obj   the canonical-space surface with sRGB vertex colours
     canonical.glb                  rigged: the same mesh, the skeleton (joints named, bind pose = the
-                                   canonical pose), the 4 largest skinning weights per vertex and the
-                                   vertex colours; with --pose it also holds the exported frames as
-                                   an animation (linear blend skinning only: no non-rigid offset)
+                                   canonical pose), the 4 (--influences 8: 8, as JOINTS_0/1) largest
+                                   skinning weights per vertex and the vertex colours, in glTF's
+                                   +Y-up, +Z-forward frame (the capture's axes rotated in, see
+                                   igavatar.mesh.gltf); with --pose it also holds the exported frames
+                                   as an animation (linear blend skinning only: no non-rigid offset)
+    textured/avatar.glb|.obj|.mtl|.png   --texture-size S: the canonical mesh decimated to
+                                   --textured-faces (pymeshlab quadric), UV-unwrapped (xatlas), the
+                                   colour field baked per texel into an S x S PNG (seams dilated);
+                                   the GLB is rigged (and animated) like canonical.glb; both Y-up
     posed/<frame>.ply|.obj         the avatar in each exported pose, in WORLD coordinates (root
                                    transform applied): forward LBS of the canonical mesh plus the
                                    pose-conditioned non-rigid offset; same faces as canonical
@@ -29,8 +35,10 @@ named as in capture.json) or a dataset artifact (its stored bone transforms: no 
 needed). Anny poses are read with the phenotype recorded in the model (needs `anny`); SMPL
 sequences are recognised and refused, since retargeting them to Anny's skeleton is not available.
 `--frame K` picks one frame (default 0), `--all` every frame. Posed meshes use every skinning
-weight of the grid; the GLB keeps the 4 largest (what every glTF viewer reads), and each posed
-frame's manifest record gives the distance between the two skinnings (glb_top4_gap_mm).
+weight of the grid and the non-rigid offset; the GLB keeps the 4 largest (what every glTF viewer
+reads) or 8, and each posed frame's manifest record gives the distance between the GLB's top-4
+skinning and full-weight LBS (glb_top4_gap_mm), and between top-4 / top-8 skinning and the posed
+mesh itself (glb_drift_mm, mm, max and mean); glb.drift_mm is the largest over the frames.
 `--exr` views: a frontal camera (the body's forward axis, rotated with the root in posed frames)
 framing the mesh, for the canonical mesh and each exported frame; maps are ray-cast from the
 exported meshes (Embree), so they match the files exactly.
@@ -64,12 +72,16 @@ from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight, vertex_normals
 from igavatar.mesh.exr import write_exr
 from igavatar.mesh.extract import extract_mesh
-from igavatar.mesh.gltf import INFLUENCES, pose_relative_to_canonical, srgb_to_linear, top_k_weights, write_rigged_glb
+from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes, srgb_to_linear
+from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm, sparse_weight_sets
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.mesh.posing import pose_canonical_vertices, vertex_colors, vertex_skin_weights
+from igavatar.mesh.posing import pose_canonical_vertices, surface_colors, vertex_colors, vertex_skin_weights
+from igavatar.mesh.texture import png_bytes
+from igavatar.mesh.textured_mesh import TexturedMesh, textured_mesh, textured_obj
 from igavatar.model.avatar import Avatar
 from igavatar.model.deformer import PreparedFrame
 from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values
+from stages.glb_writer import write_model_glb
 from stages.kernels import build_kernels
 from stages.model_io import LoadedModel, load_model
 from stages.progress import NULL_PROGRESS, ProgressSink
@@ -84,6 +96,8 @@ cleanup and writing included (measured; 256 takes about 12 s)."""
 COARSE_RESOLUTION = 64
 CAMERA_FOV_DEG = 30.0
 DEFAULT_FPS = 30.0
+DEFAULT_TEXTURED_FACES = 30_000
+"""Face budget of the textured mesh: a game-ready avatar (20-50k faces is the usual range)."""
 _NO_ROOT_SDF = 1.0  # metres: "far outside" for posed points with no canonical correspondence
 _BOX_PAD = 0.02  # of the canonical box's longest side, so the box's cap lies inside the grid
 
@@ -100,6 +114,9 @@ class ExportOptions:
     min_component_ratio: float | None = None
     taubin_steps: int = 0
     target_faces: int | None = None
+    influences: int = INFLUENCES
+    texture_size: int = 0
+    textured_faces: int = DEFAULT_TEXTURED_FACES
     pose: Path | None = None
     frame: int | None = None
     all_frames: bool = False
@@ -116,7 +133,8 @@ class ExportOptions:
         return {
             "formats": list(self.formats), "resolution": self.resolution, "coarse_resolution": self.coarse_resolution,
             "min_component_ratio": self.min_component_ratio, "taubin_steps": self.taubin_steps,
-            "target_faces": self.target_faces, "pose": None if self.pose is None else str(self.pose),
+            "target_faces": self.target_faces, "influences": self.influences,
+            "texture_size": self.texture_size, "textured_faces": self.textured_faces, "pose": None if self.pose is None else str(self.pose),
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
         }
@@ -173,6 +191,12 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError(f"--taubin-steps {options.taubin_steps}: expected >= 0")
     if options.target_faces is not None and options.target_faces < 4:
         raise InputError(f"--target-faces {options.target_faces}: expected at least 4")
+    if options.influences not in INFLUENCE_CHOICES:
+        raise InputError(f"--influences {options.influences}: expected 4 (web engines) or 8 (JOINTS_1/WEIGHTS_1 too)")
+    if options.texture_size and not 16 <= options.texture_size <= 8192:
+        raise InputError(f"--texture-size {options.texture_size}: expected 0 (no textured mesh) or 16..8192 pixels")
+    if options.textured_faces < 4:
+        raise InputError(f"--textured-faces {options.textured_faces}: expected at least 4")
     if options.exr_size < 8:
         raise InputError(f"--exr-size {options.exr_size}: expected at least 8 pixels")
     if options.pose is None:
@@ -380,13 +404,6 @@ def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.
         mesh.export(path)
 
 
-def _lbs_top_k(vertices: np.ndarray, joints: np.ndarray, weights: np.ndarray, transforms: torch.Tensor) -> np.ndarray:
-    """LBS with sparse weights, as a glTF viewer skins: (V, 3) posed vertices (float64)."""
-    b = transforms.double().cpu().numpy()[:, :3, :]  # (J, 3, 4)
-    blended = np.einsum("vk,vkrc->vrc", weights.astype(np.float64), b[joints])  # (V, 3, 4)
-    return np.einsum("vrc,vc->vr", blended[:, :, :3], vertices.astype(np.float64)) + blended[:, :, 3]
-
-
 # --------------------------------------------------------------------------------------------
 # Maps
 
@@ -476,8 +493,8 @@ class _Canonical:
     vertices: np.ndarray  # (V, 3) float32
     faces: np.ndarray  # (F, 3) int64
     colors: np.ndarray  # (V, 3) uint8 sRGB
-    top_joints: np.ndarray | None  # (V, 4) GLB influences, when a GLB is written
-    top_weights: np.ndarray | None  # (V, 4)
+    skin_weights: np.ndarray | None  # (V, J) full grid weights, when a GLB is written
+    sparse_sets: dict | None  # {4: (joints, weights), 8: ...} top-k of skin_weights (sparse_weight_sets)
 
 
 def _export_frame(
@@ -499,14 +516,15 @@ def _export_frame(
     for fmt in [f for f in options.formats if f in ("ply", "obj")] or ["ply"]:
         _write_mesh(tmp / "posed" / f"{name}.{fmt}", x_posed, canonical.faces, canonical.colors)
         record["files"].append(f"posed/{name}.{fmt}")
-    if canonical.top_joints is not None:
-        # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset).
+    if canonical.skin_weights is not None:
+        # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset),
         x_canonical = torch.from_numpy(canonical.vertices).to(avatar.canonical_box.device)
         full_lbs = avatar.deformer.forward_skinning(x_canonical, frame).cpu().numpy()
-        gap = np.linalg.norm(
-            _lbs_top_k(canonical.vertices, canonical.top_joints, canonical.top_weights, transforms) - full_lbs, axis=1
-        )
+        joints, weights = canonical.sparse_sets[4]
+        gap = np.linalg.norm(lbs_sparse(canonical.vertices, joints, weights, transforms) - full_lbs, axis=1)
         record["glb_top4_gap_mm"] = {"max": float(gap.max() * 1e3), "mean": float(gap.mean() * 1e3)}
+        # and how far top-4 and top-8 skinning land from igavatar's own posing (offset included).
+        record["glb_drift_mm"] = skin_drift_mm(canonical.vertices, canonical.sparse_sets, transforms, x_posed)
     if not options.posed_marching:
         return record, None, x_posed
 
@@ -544,6 +562,40 @@ def _write_maps(tmp: Path, views: list[tuple[str, np.ndarray, np.ndarray]], cano
     np.savez(tmp / "maps" / "cameras.npz", names=np.array([r["name"] for r in records], dtype=np.str_),
              K=np.stack([c[0] for c in cameras]), w2c=np.stack([c[1] for c in cameras]), height=size, width=size)
     return records
+
+
+def _write_textured(tmp: Path, model: LoadedModel, textured: TexturedMesh, options: ExportOptions,
+                    poses: ExportPoses | None) -> dict:
+    """textured/avatar.png, .obj + .mtl and (with glb) the textured, rigged avatar.glb; their manifest record.
+
+    The OBJ is written in glTF's +Y-up frame like the GLB (both are for other tools; canonical.*
+    stay in the capture frame).
+    """
+    folder = tmp / "textured"
+    folder.mkdir()
+    png = png_bytes(textured.image)
+    (folder / "avatar.png").write_bytes(png)
+    files = ["textured/avatar.png"]
+    if "obj" in options.formats:
+        axes = gltf_axes(model.manifest["data"]["body_model"])
+        obj, mtl = textured_obj(textured.vertices.astype(np.float64) @ axes.T, textured.faces, textured.uv,
+                                "avatar.mtl", "avatar.png")
+        (folder / "avatar.obj").write_text(obj)
+        (folder / "avatar.mtl").write_text(mtl)
+        files += ["textured/avatar.obj", "textured/avatar.mtl"]
+    glb = None
+    if "glb" in options.formats:
+        skin_weights = vertex_skin_weights(model.avatar, textured.vertices)
+        motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
+        glb = write_model_glb(folder / "avatar.glb", model, textured.vertices, textured.faces, None, skin_weights,
+                              options.influences, motion=motion, texture=(textured.uv, png))
+        files.append("textured/avatar.glb")
+    return {
+        "files": files, "vertices": int(textured.vertices.shape[0]), "faces": int(textured.faces.shape[0]),
+        "decimated_vertices": textured.decimated_vertices, "target_faces": options.textured_faces,
+        "texture_size": options.texture_size, "texel_coverage": textured.coverage,
+        "bytes": {f: (tmp / f).stat().st_size for f in files}, "glb": glb,
+    }
 
 
 def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
@@ -591,14 +643,19 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     tick = time.perf_counter()
     colors = vertex_colors(avatar, vertices)
     timings["colors_s"] = time.perf_counter() - tick
-    parents = np.asarray(subject["parents"], dtype=np.int64)
-    skin_weights = top_joints = top_weights = None
+    skin_weights = None
     if "glb" in options.formats:
         tick = time.perf_counter()
         skin_weights = vertex_skin_weights(avatar, vertices)
-        top_joints, top_weights = top_k_weights(skin_weights)
         timings["skin_weights_s"] = time.perf_counter() - tick
-    canonical = _Canonical(vertices, faces, colors, top_joints, top_weights)
+    canonical = _Canonical(vertices, faces, colors, skin_weights,
+                           None if skin_weights is None else sparse_weight_sets(skin_weights))
+    textured = None
+    if options.texture_size:
+        tick = time.perf_counter()
+        textured = textured_mesh(vertices, faces, lambda points: surface_colors(avatar, points),
+                                 options.textured_faces, options.texture_size)
+        timings["textured_s"] = time.perf_counter() - tick
 
     canonical_files: list[str] = []
     posed_records: list[dict] = []
@@ -611,21 +668,17 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
             _write_mesh(tmp / f"canonical.{fmt}", vertices, faces, colors)
             canonical_files.append(f"canonical.{fmt}")
         if skin_weights is not None:
-            animation = None
-            if poses is not None:
-                # GLB node rotations are relative to the bind (canonical) pose.
-                relative, offset = pose_relative_to_canonical(
-                    poses.local_rotations.double().numpy(), poses.root_translation.double().numpy(),
-                    subject["canonical_rotations"], np.zeros(3), parents,
-                )
-                animation = (relative, offset, poses.fps)
-            write_rigged_glb(tmp / "canonical.glb", vertices, faces, colors, model.joint_names, parents,
-                             np.asarray(subject["canonical_joints"], dtype=np.float64), skin_weights, animation=animation)
+            motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
+            facts = write_model_glb(tmp / "canonical.glb", model, vertices, faces, colors, skin_weights,
+                                    options.influences, motion=motion)
             canonical_files.append("canonical.glb")
-            glb_info = {"file": "canonical.glb", "joints": len(model.joint_names), "influences": INFLUENCES,
-                        "animation_frames": 0 if poses is None else len(poses.names),
-                        "fps": None if poses is None else poses.fps}
+            glb_info = {"file": "canonical.glb", **facts, "drift_mm": None}
         timings["write_canonical_s"] = time.perf_counter() - tick
+        textured_info = None
+        if textured is not None:
+            tick = time.perf_counter()
+            textured_info = _write_textured(tmp, model, textured, options, poses)
+            timings["write_textured_s"] = time.perf_counter() - tick
 
         body_axes = _body_axes(data["body_model"])
         map_views = [("canonical", vertices, body_axes)] if options.exr else []
@@ -647,6 +700,10 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
                         map_views.append((name, x_posed, root_rotation @ body_axes))
                     advance(1)
             timings["posing_s"] = time.perf_counter() - tick
+            if glb_info is not None:
+                glb_info["drift_mm"] = {
+                    k: max(r["glb_drift_mm"][k]["max"] for r in posed_records) for k in ("4", "8")
+                }
             if options.posed_marching:
                 timings["posed_marching_s"] = sum(m["seconds"] for m in marched_records)
                 timings["posing_s"] -= timings["posed_marching_s"]
@@ -670,6 +727,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
                 "bounds": [vertices.min(axis=0).tolist(), vertices.max(axis=0).tolist()],
             },
             "glb": glb_info,
+            "textured": textured_info,
             "posed": None if poses is None else {
                 **poses.description, "nonrigid": bool(avatar.nonrigid.enabled), "frames": posed_records,
             },
@@ -692,6 +750,8 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
         "files": [str(out / f) for f in canonical_files],
         "seconds": round(timings["total_s"], 1),
     }
+    if textured_info is not None:
+        summary["textured"] = [str(out / f) for f in textured_info["files"]]
     if poses is not None:
         summary["posed_frames"] = len(poses.names)
         summary["posed_dir"] = str(out / "posed")

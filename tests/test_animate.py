@@ -13,8 +13,11 @@ import pytest
 import torch
 
 from igavatar.artifacts.manifest import read_artifact
+import pygltflib
+
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.capture.images import scale_intrinsics
+from igavatar.mesh.gltf import gltf_axes, gltf_pose, pose_glb_vertices, pose_relative_to_canonical, read_rigged_glb
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import (
     box_corners,
@@ -97,7 +100,7 @@ def test_resize_intrinsics_matches_the_pixel_centre_rule():
 def walk_animation(tiny_model, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("anim") / "animation"
     run_animate(AnimateOptions(model=tiny_model, out=out, motion="walk", frames=4, device="cpu", meshes=True,
-                               mesh_resolution=24, **FAST))
+                               mesh_resolution=24, glb=True, **FAST))
     return out
 
 
@@ -150,6 +153,76 @@ def test_animation_records_cameras_poses_and_meshes_that_agree(walk_animation, t
     vertices = np.asarray(trimesh.load(meshes[1], process=False).vertices)
     assert len(vertices) > 0
     assert (vertices >= boxes[1, 0].numpy() - 1e-4).all() and (vertices <= boxes[1, 1].numpy() + 1e-4).all()
+
+
+def _pygltflib_keys(path: Path) -> tuple[dict, dict]:
+    """Every animation channel of a GLB decoded with pygltflib alone: {(node name, path): keys}, and the times."""
+    gltf = pygltflib.GLTF2.load(str(path))
+    blob = gltf.binary_blob()
+
+    def read(index: int) -> np.ndarray:
+        accessor = gltf.accessors[index]
+        view = gltf.bufferViews[accessor.bufferView]
+        width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[accessor.type]
+        data = np.frombuffer(blob, np.float32, accessor.count * width, view.byteOffset + (accessor.byteOffset or 0))
+        return data.reshape(accessor.count, width)
+
+    (animation,) = gltf.animations
+    keys, times = {}, {}
+    for channel in animation.channels:
+        sampler = animation.samplers[channel.sampler]
+        name = gltf.nodes[channel.target.node].name
+        keys[(name, channel.target.path)] = read(sampler.output)
+        times[(name, channel.target.path)] = read(sampler.input)[:, 0]
+        assert sampler.interpolation == "LINEAR"
+    return keys, times
+
+
+def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(N, 4) x, y, z, w -> (N, 3, 3), written out here so the test shares no code with the writer."""
+    x, y, z, w = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def test_animated_glb_channels_round_trip_the_motion(walk_animation, tiny_model):
+    """animation.glb read back with pygltflib: a rotation channel per joint and the root translation,
+    one key per frame at the motion's fps, equal to the driving motion (poses.npz) re-expressed
+    relative to the canonical bind pose in glTF's Y-up frame."""
+    data = read_artifact(walk_animation, expected="animation")["data"]
+    glb = data["glb"]
+    assert glb["file"] == "animation.glb" and glb["animation_frames"] == 4 and glb["fps"] == 30.0
+    model = load_model(tiny_model)
+    keys, times = _pygltflib_keys(walk_animation / "animation.glb")
+    names = model.joint_names
+    assert set(keys) == {(n, "rotation") for n in names} | {(names[0], "translation")}
+    for key_times in times.values():
+        np.testing.assert_allclose(key_times, np.arange(4) / 30.0, atol=1e-6)
+
+    with np.load(walk_animation / "poses.npz") as poses:
+        rotations = axis_angle_to_matrix(torch.from_numpy(poses["rotvecs"]).double()).numpy()
+        translation = poses["transl"].astype(np.float64)
+    relative, offset = pose_relative_to_canonical(rotations, translation, model.subject["canonical_rotations"],
+                                                  np.zeros(3), model.subject["parents"])
+    axes = gltf_axes("anny")
+    expected_rotations, expected_offset = gltf_pose(axes, relative, offset)
+    for j, name in enumerate(names):
+        np.testing.assert_allclose(_quaternion_matrix(keys[(name, "rotation")]), expected_rotations[:, j], atol=2e-5)
+    root_bind = np.asarray(model.subject["canonical_joints"], np.float64)[0] @ axes.T
+    np.testing.assert_allclose(keys[(names[0], "translation")], root_bind + expected_offset, atol=1e-5)
+
+    # The clip's frame 1, skinned the glTF way, lands on igavatar's posed mesh within the reported drift.
+    posed_glb = pose_glb_vertices(walk_animation / "animation.glb", expected_rotations[1], expected_offset[1]) @ axes
+    import trimesh
+
+    posed = np.asarray(trimesh.load(walk_animation / "meshes" / "0001.ply", process=False).vertices)
+    gap = np.linalg.norm(posed_glb - posed, axis=1).max() * 1e3
+    assert gap == pytest.approx(glb["drift_mm_per_frame"]["4"][1], abs=0.05)
+    assert glb["drift_mm"]["4"] == max(glb["drift_mm_per_frame"]["4"]) and len(glb["drift_mm_per_frame"]["8"]) == 4
+    assert read_rigged_glb(walk_animation / "animation.glb")["vertices"].shape[0] == data["mesh_vertices"]
 
 
 @pytest.mark.parametrize("source", ["capture/poses.npz", "capture", "dataset"])
@@ -250,8 +323,27 @@ def test_cli_camera_file_round_trip_and_bad_camera_file(cli_runner, walk_animati
     assert not (tmp_path / "never").exists() and not list(tmp_path.glob(".never*"))
 
 
+def test_cli_glb_with_eight_influences_from_capture_poses(cli_runner, tiny_model, small_run, tmp_path):
+    out = tmp_path / "animation"
+    result = cli_runner.invoke(app, [
+        "animate", str(small_run / "capture"), "--model", str(tiny_model), "--out", str(out), "--frames", "3",
+        "--resolution", "16", "--samples", "4", "--mesh-resolution", "24", "--glb", "--influences", "8",
+        "--device", "cpu", "--json",
+    ])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)["glb"] == str(out / "animation.glb")
+    glb = read_rigged_glb(out / "animation.glb")
+    assert glb["weights"].shape[1] == 8
+    np.testing.assert_allclose(glb["weights"].sum(axis=1, dtype=np.float64), 1.0, atol=1e-6)
+    data = read_artifact(out, expected="animation")["data"]["glb"]
+    assert data["influences"] == 8 and data["animation_frames"] == 3
+    assert all(d >= 0 for d in data["drift_mm_per_frame"]["8"]) and len(data["drift_mm_per_frame"]["4"]) == 3
+    assert not (out / "meshes").exists()  # --glb alone writes no per-frame meshes
+
+
 def test_cli_bad_inputs_fail_with_one_line(cli_runner, tiny_model, tmp_path):
     cases = [
+        (["animate", "--model", str(tiny_model), "--glb", "--influences", "6"], "--influences 6"),
         (["animate", "moonwalk", "--model", str(tiny_model)], "neither a procedural motion"),
         (["animate", "--model", str(tmp_path / "missing")], "run `igavatar train` first"),
         (["animate", "--model", str(tiny_model), "--camera", "capture", "--dataset", str(tmp_path / "nope")], "--dataset"),

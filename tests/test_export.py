@@ -18,7 +18,15 @@ from igavatar.capture.subject import pose_frames
 from igavatar.errors import InputError, NotAvailableError
 from igavatar.mesh.cleanup import is_watertight
 from igavatar.mesh.exr import read_exr
-from igavatar.mesh.gltf import linear_to_srgb, pose_glb_vertices, pose_relative_to_canonical, read_glb_animation
+from igavatar.mesh.gltf import (
+    gltf_axes,
+    gltf_pose,
+    linear_to_srgb,
+    pose_glb_vertices,
+    pose_relative_to_canonical,
+    read_glb_animation,
+    read_rigged_glb,
+)
 from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.mesh.posing import pose_canonical_vertices
 from igavatar.model.avatar import Avatar
@@ -273,7 +281,8 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     scene = trimesh.load(out / "canonical.glb", process=False)
     geometry = next(iter(scene.geometry.values()))
     assert len(geometry.vertices) == len(canonical.vertices) and len(geometry.faces) == len(canonical.faces)
-    np.testing.assert_allclose(geometry.vertices, canonical.vertices, atol=1e-6)
+    axes = gltf_axes("anny")  # the GLB is Y-up: canonical vertices rotated from the capture's Z-up frame
+    np.testing.assert_allclose(geometry.vertices, canonical.vertices @ axes.T, atol=1e-6)
     # With a material, trimesh keeps COLOR_0 (linear, as glTF stores it) as a vertex attribute.
     colours = np.round(linear_to_srgb(geometry.visual.vertex_attributes["color"]) * 255)
     assert np.abs(colours - np.asarray(canonical.visual.vertex_colors)[:, :3]).max() <= 1
@@ -284,10 +293,11 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     rotations, translation = body.local_rotations_from_pose_parameters(torch.tensor(capture.poses["pose_parameters"][k:k + 1]))
     relative, offset = pose_relative_to_canonical(rotations[0].double().numpy(), translation[0].double().numpy(),
                                                   model.subject["canonical_rotations"], np.zeros(3), model.subject["parents"])
-    glb_posed = pose_glb_vertices(out / "canonical.glb", relative, offset)
+    glb_posed_gltf = pose_glb_vertices(out / "canonical.glb", *gltf_pose(axes, relative, offset))
     animation_rotations, animation_offset, _ = read_glb_animation(out / "canonical.glb")
     np.testing.assert_allclose(pose_glb_vertices(out / "canonical.glb", animation_rotations[0], animation_offset[0]),
-                               glb_posed, atol=1e-4)
+                               glb_posed_gltf, atol=1e-4)
+    glb_posed = glb_posed_gltf @ axes  # back to the capture's world frame
 
     # Same vertices as LBS with the GLB's own top-4 weights under the model's bone transforms: < 0.1 mm.
     transforms = model.pose(rotations, translation).bone_transforms[0].double().numpy()
@@ -302,12 +312,89 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     gap = np.linalg.norm(glb_posed - posed, axis=1) * 1e3
     reported = data["posed"]["frames"][0]["glb_top4_gap_mm"]
     assert gap.max() == pytest.approx(reported["max"], abs=0.05) and gap.mean() == pytest.approx(reported["mean"], abs=0.05)
+    # Without the non-rigid offset, igavatar's posing is full-weight LBS: the drift is that gap.
+    drift = data["posed"]["frames"][0]["glb_drift_mm"]
+    assert drift["4"]["max"] == pytest.approx(reported["max"], abs=0.05)
+    assert drift["8"]["max"] <= drift["4"]["max"] + 1e-6
+    assert data["glb"]["drift_mm"] == {"4": drift["4"]["max"], "8": drift["8"]["max"]}
+    assert data["glb"]["up_axis"] == "+Y" and np.allclose(data["glb"]["world_to_gltf"], axes)
     # And, the same posing with every weight, from the model directly (no non-rigid offset).
     model.avatar.nonrigid.set_enabled(False)
     bone_transforms = torch.from_numpy(np.load(small_run / "dataset" / "frames.npz")["bone_transforms"][k])
     expected = pose_canonical_vertices(model.avatar, np.asarray(canonical.vertices), model.avatar.deformer.prepare(bone_transforms),
                                        torch.zeros(model.manifest["data"]["pose_dim"]))
     assert np.abs(posed - expected).max() < 1e-4
+
+
+def test_exported_glb_is_y_up_with_the_head_above_the_feet(posed_export):
+    """Our GLB read back (pygltflib via read_rigged_glb): the head joint and the top of the mesh lie
+    above the feet along glTF's +Y, and the feet are at the bottom of the mesh."""
+    data = read_rigged_glb(posed_export / "canonical.glb")
+    names = [n.lower() for n in data["joint_names"]]
+    y = data["joints_bind"][:, 1]
+    head = next(i for i, n in enumerate(names) if n == "head")
+    feet = [i for i, n in enumerate(names) if n.startswith("foot")]
+    assert feet, names
+    assert y[head] - y[feet].max() > 1.0  # an adult: > 1 m from the feet to the head, along +Y
+    # The tiny model's surface is a rough blob around the body: it still stands along Y.
+    vertices = data["vertices"]
+    extent = vertices.max(axis=0) - vertices.min(axis=0)
+    assert extent[1] > 2 * extent[2], extent
+    assert y[feet].max() < vertices[:, 1].mean() < y[head]
+
+
+def test_eight_influences_and_drift_per_frame(small_run, tiny_model, tmp_path):
+    out = tmp_path / "mesh8"
+    run_export(ExportOptions(model=tiny_model, out=out, formats=("glb",), resolution=RESOLUTION, influences=8,
+                             pose=small_run / "capture", frame=4, device="cpu"))
+    data = read_artifact(out, expected="mesh")["data"]
+    glb = read_rigged_glb(out / "canonical.glb")
+    assert glb["weights"].shape[1] == 8 and data["glb"]["influences"] == 8
+    np.testing.assert_allclose(glb["weights"].sum(axis=1, dtype=np.float64), 1.0, atol=1e-6)
+    (frame,) = data["posed"]["frames"]
+    # The non-rigid offset is on: both truncations drift from igavatar's posing, 8 no more than 4 + offset.
+    assert 0 < frame["glb_drift_mm"]["8"]["mean"] and frame["glb_drift_mm"]["4"]["max"] < 100
+    assert data["glb"]["drift_mm"]["4"] == frame["glb_drift_mm"]["4"]["max"]
+    # Measured from the files: the GLB's own 8-weight skinning against posed/<frame>.ply.
+    rotations, offset, _ = read_glb_animation(out / "canonical.glb")
+    posed_glb = pose_glb_vertices(out / "canonical.glb", rotations[0], offset[0]) @ np.asarray(data["glb"]["world_to_gltf"])
+    posed = np.asarray(trimesh.load(out / "posed" / f"{frame['name']}.ply", process=False).vertices)
+    gap = np.linalg.norm(posed_glb - posed, axis=1) * 1e3
+    assert gap.max() == pytest.approx(frame["glb_drift_mm"]["8"]["max"], abs=0.05)
+
+
+def test_textured_export_bakes_the_colour_field_and_rigs_the_decimated_mesh(small_run, tiny_model, tmp_path):
+    import cv2
+
+    from igavatar.mesh.posing import surface_colors
+
+    out = tmp_path / "mesh"
+    run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128, textured_faces=800,
+                             pose=small_run / "capture", frame=2, device="cpu"))
+    data = read_artifact(out, expected="mesh")["data"]
+    textured = data["textured"]
+    assert set(textured["files"]) == {f"textured/avatar.{ext}" for ext in ("png", "obj", "mtl", "glb")}
+    assert textured["faces"] <= 800 and textured["texture_size"] == 128
+    assert data["canonical"]["faces"] > textured["faces"]  # the full-resolution mesh stays as it was
+
+    glb = read_rigged_glb(out / "textured" / "avatar.glb")
+    assert glb["uv"] is not None and glb["colors"] is None and glb["faces"].shape[0] == textured["faces"]
+    gltf = pygltflib.GLTF2().load(str(out / "textured" / "avatar.glb"))
+    assert gltf.materials[0].pbrMetallicRoughness.baseColorTexture.index == 0
+    assert gltf.images[0].mimeType == "image/png" and len(gltf.animations) == 1
+    # The texture at each vertex's UV is the colour field at that (canonical) vertex.
+    image = cv2.cvtColor(cv2.imread(str(out / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+    texel = glb["uv"] * 128 - 0.5
+    sampled = cv2.remap(image, texel[:, 0].astype(np.float32)[None], texel[:, 1].astype(np.float32)[None],
+                        cv2.INTER_LINEAR)[0]
+    canonical = glb["vertices"].astype(np.float64) @ np.asarray(glb["world_to_gltf"])  # back to the capture frame
+    expected = surface_colors(load_model(tiny_model).avatar, canonical)
+    assert np.median(np.abs(sampled - expected)) < 0.03
+    np.testing.assert_allclose(glb["weights"].sum(axis=1), 1.0, atol=1e-6)
+    # The OBJ (with its MTL and PNG) is the same Y-up mesh.
+    obj = trimesh.load(out / "textured" / "avatar.obj", process=False)
+    assert len(obj.faces) == textured["faces"] and obj.visual.uv is not None
+    assert np.abs(np.asarray(obj.vertices).max(axis=0) - glb["vertices"].max(axis=0)).max() < 1e-4
 
 
 def _accessor(gltf: pygltflib.GLTF2, path: Path, attribute: str) -> np.ndarray:
@@ -359,7 +446,8 @@ def test_cli_export_json_and_skip_when_unchanged(small_run, tiny_model, cli_runn
     read_artifact(small_run / "dataset", expected="dataset")
 
 
-@pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "other-skeleton", "frame-range", "frame-without-pose", "no-pose-file"])
+@pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "other-skeleton", "frame-range", "frame-without-pose", "no-pose-file",
+                                  "influences", "texture-size"])
 def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_runner, tmp_path, case):
     np.savez(tmp_path / "bad.npz", pose_parameters=np.zeros((2, 104, 4, 3)))
     # A bare 3-joint skeleton: no retarget exists onto Anny (SMPL sequences are retargeted).
@@ -372,6 +460,8 @@ def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_ru
         "frame-range": (tiny_model, ["--pose", str(small_run / "capture"), "--frame", "99"], 2, "--frame 99"),
         "frame-without-pose": (tiny_model, ["--frame", "1"], 2, "--frame needs --pose"),
         "no-pose-file": (tiny_model, ["--pose", str(tmp_path / "missing.npz")], 2, "no such file"),
+        "influences": (tiny_model, ["--influences", "6"], 2, "--influences 6: expected 4"),
+        "texture-size": (tiny_model, ["--texture-size", "8"], 2, "--texture-size 8: expected 0"),
     }[case]
     out = tmp_path / "mesh"
     result = cli_runner.invoke(app, ["export", "--model", str(model), "--out", str(out), "--resolution", "16", *extra])

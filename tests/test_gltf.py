@@ -19,6 +19,8 @@ from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import bone_transforms, forward_kinematics, linear_blend_skinning
 from igavatar.errors import InputError
 from igavatar.mesh.gltf import (
+    gltf_axes,
+    gltf_pose,
     linear_to_srgb,
     pose_glb_vertices,
     pose_relative_to_canonical,
@@ -40,6 +42,20 @@ REST = np.array([
     [-0.18, 0.0, 1.4], [-0.45, 0.0, 1.4], [0.1, 0.0, 0.85], [0.1, 0.0, 0.45], [-0.1, 0.0, 0.85],
     [-0.1, 0.0, 0.45],
 ])
+
+
+# The test subject is Z-up like Anny's frame; every GLB is written in glTF's Y-up frame.
+AXES = gltf_axes("anny")
+
+
+def to_gltf(points: np.ndarray) -> np.ndarray:
+    """Points of the (Z-up) test frame in the GLB's (Y-up) frame."""
+    return np.asarray(points, dtype=np.float64) @ AXES.T
+
+
+def glb_posed(path: Path, rotations: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """pose_glb_vertices of a pose given in the test frame, mapped back to the test frame."""
+    return pose_glb_vertices(path, *gltf_pose(AXES, rotations, translation)) @ AXES
 
 
 def random_rotations(rng: np.random.Generator, shape: tuple[int, ...], scale: float) -> np.ndarray:
@@ -78,7 +94,7 @@ class Avatar:
     def write(self, path: Path, **kwargs) -> Path:
         write_rigged_glb(
             path, self.vertices, self.faces, self.colors, NAMES, PARENTS, self.joints_canonical,
-            self.weights, **kwargs,
+            self.weights, world_to_gltf=AXES, **kwargs,
         )
         return path
 
@@ -176,8 +192,11 @@ def validate_glb(path: Path) -> dict:
     inverse_bind = read(skin["inverseBindMatrices"]).reshape(-1, 4, 4).transpose(0, 2, 1)
     assert inverse_bind.shape[0] == num_joints
     np.testing.assert_array_equal(inverse_bind[:, 3], np.tile([0, 0, 0, 1], (num_joints, 1)))
-    joints = read(attributes["JOINTS_0"])
-    weights = read(attributes["WEIGHTS_0"])
+    sets = 1 + ("JOINTS_1" in attributes)
+    for name in ("JOINTS_1", "WEIGHTS_1")[: 2 * (sets - 1)]:
+        assert doc["accessors"][attributes[name]]["count"] == num_vertices
+    joints = np.concatenate([read(attributes[f"JOINTS_{n}"]) for n in range(sets)], axis=1)
+    weights = np.concatenate([read(attributes[f"WEIGHTS_{n}"]) for n in range(sets)], axis=1)
     assert joints.max() < num_joints and weights.min() >= 0
     # The validator's tolerance: |sum - 1| <= 2e-7 x the number of non-zero weights.
     assert np.all(np.abs(weights.sum(axis=1, dtype=np.float32) - 1) <= 2e-7 * (weights > 0).sum(axis=1))
@@ -205,11 +224,12 @@ def test_round_trip_pygltflib_and_trimesh(tmp_path, avatar):
     assert doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["JOINTS_0"]]["componentType"] == 5121
 
     data = read_rigged_glb(path)
-    np.testing.assert_array_equal(data["vertices"], avatar.vertices)
+    np.testing.assert_allclose(data["vertices"], to_gltf(avatar.vertices), atol=1e-6)
+    np.testing.assert_array_equal(data["world_to_gltf"], AXES)
     np.testing.assert_array_equal(data["faces"], avatar.faces)
     assert data["joint_names"] == NAMES
     np.testing.assert_array_equal(data["parents"], PARENTS)
-    np.testing.assert_allclose(data["joints_bind"], avatar.joints_canonical, atol=1e-6)
+    np.testing.assert_allclose(data["joints_bind"], to_gltf(avatar.joints_canonical), atol=1e-6)
     # Colours are stored linear (glTF) and come back as the sRGB values written.
     np.testing.assert_array_equal(np.round(data["colors"] * 255).astype(np.uint8), avatar.colors)
     np.testing.assert_allclose(data["weights"].sum(axis=1), 1.0, atol=3e-7)
@@ -225,12 +245,61 @@ def test_round_trip_pygltflib_and_trimesh(tmp_path, avatar):
     (mesh,) = scene.geometry.values()
     assert mesh.vertices.shape == avatar.vertices.shape and mesh.faces.shape == avatar.faces.shape
     np.testing.assert_array_equal(mesh.faces, avatar.faces)
-    np.testing.assert_allclose(mesh.vertices, avatar.vertices, atol=1e-6)
+    np.testing.assert_allclose(mesh.vertices, to_gltf(avatar.vertices), atol=1e-6)
     plain = trimesh.load(path, process=False, skip_materials=True)
     (plain_mesh,) = plain.geometry.values()
     linear = srgb_to_linear(avatar.colors / 255.0)
     assert np.abs(plain_mesh.visual.vertex_colors[:, :3] / 255.0 - linear).max() < 1.0 / 255 + 1e-6
     assert {gltf.nodes[n].name for n in range(len(NAMES))} <= set(scene.graph.nodes)
+
+
+def test_glb_is_y_up_head_above_the_feet(tmp_path, avatar):
+    """Read back with pygltflib alone: the head joint and the head's vertices lie above the knees
+    along +Y (glTF's up), and the body's height is not along Z (as a Z-up file would have it)."""
+    path = avatar.write(tmp_path / "avatar.glb")
+    gltf = pygltflib.GLTF2.load(str(path))
+    translations = {n.name: np.array(n.translation) for n in gltf.nodes if n.translation is not None}
+    pelvis = translations["pelvis"]
+    head = pelvis + translations["spine"] + translations["head"]
+    knee = pelvis + translations["l_knee"] + translations["l_hip"]
+    up = head - knee  # ~1.1 m in the rest pose, tilted by the random canonical rotations
+    assert up[1] > 0.7 and up[1] > 3 * max(abs(up[0]), abs(up[2]))
+    accessor = gltf.accessors[gltf.meshes[0].primitives[0].attributes.POSITION]
+    extent = np.array(accessor.max) - np.array(accessor.min)
+    assert extent[1] > extent[0] and extent[1] > 2 * extent[2]  # tall along Y, thin along Z
+    # The subject faces +Z: the glTF frame's forward; the Anny frame's forward was -Y.
+    np.testing.assert_allclose(AXES @ np.array([0.0, -1.0, 0.0]), [0.0, 0.0, 1.0])
+
+
+def test_eight_influences_sum_to_one_and_skin_closer_than_four(tmp_path):
+    avatar = Avatar(sigma=0.2, seed=6)  # wide weights: the 5th..8th joints matter
+    path4 = avatar.write(tmp_path / "four.glb")
+    path8 = avatar.write(tmp_path / "eight.glb", influences=8)
+    doc = validate_glb(path8)
+    attributes = doc["meshes"][0]["primitives"][0]["attributes"]
+    assert {"JOINTS_0", "JOINTS_1", "WEIGHTS_0", "WEIGHTS_1"} <= set(attributes)
+    assert "JOINTS_1" not in validate_glb(path4)["meshes"][0]["primitives"][0]["attributes"]
+    data = read_rigged_glb(path8)
+    assert data["joints"].shape == (600, 8) and data["weights"].shape == (600, 8)
+    np.testing.assert_allclose(data["weights"].sum(axis=1, dtype=np.float64), 1.0, atol=1e-6)
+    joints, weights = top_k_weights(avatar.weights, 8)
+    np.testing.assert_array_equal(data["joints"], joints)
+    np.testing.assert_array_equal(data["weights"], weights)
+    assert np.all(np.diff(data["weights"], axis=1) <= 0)  # largest first, across both sets
+
+    rng = np.random.default_rng(7)
+    rotations = random_rotations(rng, (len(PARENTS),), 0.5)
+    translation = rng.normal(scale=0.2, size=3)
+    full = avatar.our_posed(rotations, translation, avatar.weights)
+    relative, offset = pose_relative_to_canonical(
+        rotations, translation, avatar.canonical_rotations, avatar.canonical_translation, PARENTS
+    )
+    gap4 = np.abs(glb_posed(path4, relative, offset) - full).max()
+    gap8 = np.abs(glb_posed(path8, relative, offset) - full).max()
+    assert gap8 < 0.5 * gap4, (gap4, gap8)
+    dense8 = np.zeros_like(avatar.weights)
+    np.put_along_axis(dense8, joints, weights.astype(np.float64), axis=1)
+    np.testing.assert_allclose(glb_posed(path8, relative, offset), avatar.our_posed(rotations, translation, dense8), atol=1e-4)
 
 
 def test_srgb_transfer_round_trip():
@@ -256,7 +325,7 @@ def test_top_k_weights():
 def test_identity_pose_is_the_canonical_mesh(tmp_path, avatar):
     path = avatar.write(tmp_path / "avatar.glb")
     posed = pose_glb_vertices(path, np.tile(np.eye(3), (len(PARENTS), 1, 1)), np.zeros(3))
-    np.testing.assert_allclose(posed, avatar.vertices, atol=1e-6)
+    np.testing.assert_allclose(posed, to_gltf(avatar.vertices), atol=1e-6)
 
 
 def test_glb_skinning_matches_forward_kinematics(tmp_path, avatar):
@@ -270,12 +339,14 @@ def test_glb_skinning_matches_forward_kinematics(tmp_path, avatar):
         relative, offset = pose_relative_to_canonical(
             rotations, translation, avatar.canonical_rotations, avatar.canonical_translation, PARENTS
         )
-        glb = pose_glb_vertices(path, relative, offset)
+        glb = glb_posed(path, relative, offset)
         assert np.abs(glb - ours).max() < 1e-4
         assert np.abs(ours - avatar.vertices).max() > 0.05  # a real pose, not a no-op
         # The conversion matters: rest-relative rotations fed straight to the GLB are wrong.
-        naive = pose_glb_vertices(path, rotations, translation)
+        naive = glb_posed(path, rotations, translation)
         assert np.abs(naive - ours).max() > 0.01
+        # So do the axes: the pose's own frame fed to the Y-up file is wrong too.
+        assert np.abs(pose_glb_vertices(path, relative, offset) @ AXES - ours).max() > 0.01
 
 
 def test_top4_is_close_to_full_weights_for_smooth_weights(tmp_path):
@@ -291,7 +362,7 @@ def test_top4_is_close_to_full_weights_for_smooth_weights(tmp_path):
     relative, offset = pose_relative_to_canonical(
         rotations, translation, avatar.canonical_rotations, avatar.canonical_translation, PARENTS
     )
-    glb = pose_glb_vertices(path, relative, offset)
+    glb = glb_posed(path, relative, offset)
     assert np.abs(glb - full).max() < 1e-3
 
 
@@ -309,13 +380,14 @@ def test_animation_keyframes_round_trip_and_pose(tmp_path, avatar):
 
     keys_rotations, keys_translation, fps = read_glb_animation(path)
     assert fps == 24.0
-    np.testing.assert_allclose(keys_rotations, relative, atol=1e-6)
-    np.testing.assert_allclose(keys_translation, offset, atol=1e-6)
+    expected_rotations, expected_offset = gltf_pose(AXES, relative, offset)
+    np.testing.assert_allclose(keys_rotations, expected_rotations, atol=1e-6)
+    np.testing.assert_allclose(keys_translation, expected_offset, atol=1e-6)
     weights4 = avatar.top4_dense()
     for n in range(frames):
         ours = avatar.our_posed(rotations[n], translation[n], weights4)
         glb = pose_glb_vertices(path, keys_rotations[n], keys_translation[n])
-        assert np.abs(glb - ours).max() < 1e-4
+        assert np.abs(glb - to_gltf(ours)).max() < 1e-4
 
 
 def test_quaternion_hemisphere_is_continuous(tmp_path, avatar):
@@ -333,7 +405,7 @@ def test_quaternion_hemisphere_is_continuous(tmp_path, avatar):
     q = np.frombuffer(gltf.binary_blob(), np.float32, accessor.count * 4, view.byteOffset).reshape(-1, 4)
     assert np.all((q[1:] * q[:-1]).sum(axis=1) > 0)
     keys, _, _ = read_glb_animation(path)
-    np.testing.assert_allclose(keys[:, 2], per_frame, atol=1e-6)
+    np.testing.assert_allclose(keys[:, 2], AXES @ per_frame @ AXES.T, atol=1e-6)
 
 
 def test_many_joints_use_unsigned_short(tmp_path):
@@ -346,7 +418,7 @@ def test_many_joints_use_unsigned_short(tmp_path):
     path = tmp_path / "chain.glb"
     write_rigged_glb(
         path, vertices, faces, np.full((num_joints, 3), 0.5), [f"j{i}" for i in range(num_joints)],
-        parents, joints, weights,
+        parents, joints, weights, world_to_gltf=np.eye(3),
     )
     doc = validate_glb(path)
     assert doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["JOINTS_0"]]["componentType"] == 5123
@@ -365,6 +437,7 @@ def test_bad_inputs_raise_input_error(tmp_path, avatar):
         arguments = dict(
             vertices=avatar.vertices, faces=avatar.faces, colors=avatar.colors, joint_names=NAMES,
             parents=PARENTS, joints_canonical=avatar.joints_canonical, skin_weights=avatar.weights,
+            world_to_gltf=AXES,
         )
         arguments.update(changes)
         write_rigged_glb(tmp_path / "bad.glb", **arguments)
@@ -381,6 +454,10 @@ def test_bad_inputs_raise_input_error(tmp_path, avatar):
         write(skin_weights=np.zeros_like(avatar.weights))
     with pytest.raises(InputError, match="rotations"):
         write(animation=(np.ones((2, len(PARENTS), 3, 3)), np.zeros((2, 3)), 30.0))
+    with pytest.raises(InputError, match="influences"):
+        write(influences=6)
+    with pytest.raises(InputError, match="world_to_gltf"):
+        write(world_to_gltf=np.diag([1.0, 1.0, -1.0]))  # a mirror, not a rotation
     with pytest.raises(InputError, match="fps"):
         write(animation=(np.tile(np.eye(3), (2, len(PARENTS), 1, 1)), np.zeros((2, 3)), 0.0))
     assert not (tmp_path / "bad.glb").exists()

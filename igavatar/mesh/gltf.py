@@ -1,7 +1,21 @@
 """Rigged, optionally animated, binary glTF (GLB) of a canonical avatar mesh, and a GLB reader.
 
-    write_rigged_glb("avatar.glb", vertices, faces, colors, names, parents, joints_canonical, weights)
-    x_posed = pose_glb_vertices("avatar.glb", rotations_rel_canonical, root_translation)
+    write_rigged_glb("avatar.glb", vertices, faces, colors, names, parents, joints_canonical, weights,
+                     world_to_gltf=gltf_axes("anny"))
+    x_posed = pose_glb_vertices("avatar.glb", rotations_rel_canonical, root_translation)  # glTF frame
+
+Axes: glTF is +Y up, +Z forward (the front of an asset faces +Z), +X the asset's left, metres;
+every importer (Blender, three.js, Unity) converts from that. igavatar's world frame is the
+capture's (Anny: +Z up, facing -Y), so the writer takes `world_to_gltf`, the (3, 3) rotation from
+the caller's frame to glTF's (`gltf_axes(body_model)`: the body's left, up and forward axes become
++X, +Y and +Z), and *bakes* it into every position, normal, joint, bind matrix and keyframe. We bake
+rather than add a rotated root node because a parent node above the skeleton becomes an extra
+object or bone in Blender, is dropped or re-parented by engines that retarget humanoids (Unity's
+importer, three.js' SkeletonUtils), and would rotate the root translation channel in a frame the
+user never sees; baked, the armature's own nodes are in glTF's frame and the file is
+self-explanatory. The rotation is recorded in `asset.extras.igavatar.world_to_gltf` so tools can
+map back to the capture frame (`read_rigged_glb` returns it). The readers below return the
+file's (glTF) frame.
 
 The bind pose is the canonical pose: every joint node has identity rotation and the translation
 of its canonical offset from its parent (the root's: its canonical position), and each
@@ -14,7 +28,8 @@ Root translation is an offset added to the root node's canonical position.
 
 Stored: POSITION (with min/max), NORMAL (unit), COLOR_0 (float RGB, linear as glTF requires; the
 colours given are sRGB and converted), indices (uint32), JOINTS_0/WEIGHTS_0 (the 4 largest weights
-per vertex renormalised to sum to 1; joints as uint8, or uint16 above 256 joints), one skin, and
+per vertex renormalised to sum to 1; joints as uint8, or uint16 above 256 joints; with
+`influences=8` also JOINTS_1/WEIGHTS_1, the 8 largest summing to 1 over both sets), one skin, and
 optionally one animation (LINEAR keyframes: a rotation channel per joint, a translation channel
 on the root; fps in the animation's extras). The reader side (`read_rigged_glb`,
 `pose_glb_vertices`, `read_glb_animation`) decodes accessors and composes node matrices itself,
@@ -35,13 +50,44 @@ import pygltflib
 import torch
 
 from igavatar.artifacts.atomic import atomic_write_bytes
+from igavatar.body.motions import body_to_world
 from igavatar.body.rotations import matrix_to_quaternion
 from igavatar.body.skeleton import Skeleton
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import vertex_normals
 
 INFLUENCES = 4
-"""Joint influences per vertex in JOINTS_0/WEIGHTS_0."""
+"""Default joint influences per vertex: one JOINTS_0/WEIGHTS_0 set, what every web engine reads."""
+INFLUENCE_CHOICES = (4, 8)
+"""Influences the writer offers: 4 (one set) or 8 (JOINTS_0/1, WEIGHTS_0/1; Blender reads both)."""
+
+
+def gltf_axes(body_model: str) -> np.ndarray:
+    """(3, 3) rotation from a body model's world frame to glTF's (+X left, +Y up, +Z forward).
+
+    Anny: +Z up, facing -Y -> (x, z, -y). SMPL is already Y-up, Z-forward (identity). Bare
+    skeletons have no convention of their own; SMPL's is assumed, as elsewhere in igavatar.
+    """
+    kind = body_model if body_model in ("anny", "smpl") else "smpl"
+    return body_to_world(kind).T.copy()
+
+
+def gltf_pose(world_to_gltf: np.ndarray, rotations: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A pose for the GLB's nodes expressed in the caller's frame, re-expressed in glTF's.
+
+    Joint frames are world-aligned at bind time, so a local rotation R becomes A R A^T and a root
+    offset t becomes A t (A = world_to_gltf).
+
+    Args:
+        world_to_gltf: (3, 3) rotation A.
+        rotations: (..., J, 3, 3) node rotations relative to the canonical pose (caller's frame).
+        translation: (..., 3) root offsets (caller's frame).
+    Returns:
+        rotations (..., J, 3, 3) and offsets (..., 3) in glTF's frame, float64.
+    """
+    a = np.asarray(world_to_gltf, dtype=np.float64)
+    rotations = a @ np.asarray(rotations, dtype=np.float64) @ a.T
+    return rotations, np.asarray(translation, dtype=np.float64) @ a.T
 
 
 # --------------------------------------------------------------------------------------------
@@ -204,12 +250,16 @@ def write_rigged_glb(
     path: str | os.PathLike[str],
     vertices: np.ndarray,
     faces: np.ndarray,
-    colors: np.ndarray,
+    colors: np.ndarray | None,
     joint_names: Sequence[str],
     parents: Sequence[int] | np.ndarray,
     joints_canonical: np.ndarray,
     skin_weights: np.ndarray,
+    *,
+    world_to_gltf: np.ndarray,
     animation: tuple[np.ndarray, np.ndarray, float] | None = None,
+    influences: int = INFLUENCES,
+    texture: tuple[np.ndarray, bytes] | None = None,
 ) -> None:
     """Write a skinned mesh whose bind pose is the canonical pose as one GLB (atomically).
 
@@ -217,13 +267,20 @@ def write_rigged_glb(
         path: the .glb file to write.
         vertices: (V, 3) canonical positions in metres.
         faces: (F, 3) vertex indices, counter-clockwise seen from outside.
-        colors: (V, 3) sRGB colours, uint8 or float in [0, 1].
+        colors: (V, 3) sRGB colours, uint8 or float in [0, 1] (None with a texture).
         joint_names: J names (node names in the file).
         parents: (J,) parent indices, -1 for the root at 0, parents before children.
         joints_canonical: (J, 3) joint positions in the canonical pose.
-        skin_weights: (V, J) non-negative skinning weights (top 4 kept, renormalised).
+        skin_weights: (V, J) non-negative skinning weights (top `influences` kept, renormalised).
+        world_to_gltf: (3, 3) rotation from the frame of every input (vertices, joints, animation)
+            to glTF's +Y-up, +Z-forward frame (`gltf_axes(body_model)`); baked into the file.
         animation: optional (local_rotations (N, J, 3, 3) relative to the canonical pose,
-            root_translation (N, 3) offsets from the canonical root position, fps).
+            root_translation (N, 3) offsets from the canonical root position, fps), in the
+            caller's frame like the vertices.
+        influences: 4 (JOINTS_0/WEIGHTS_0) or 8 (also JOINTS_1/WEIGHTS_1).
+        texture: optional (uv (V, 2) in [0, 1] with v down from the image's top row, as glTF
+            defines TEXCOORD_0; PNG bytes of the sRGB base colour). The image is embedded and
+            the material samples it; `colors` are then not stored (glTF would multiply them).
     """
     path = Path(path)
     v = _as_array(vertices).astype(np.float64)
@@ -241,7 +298,17 @@ def write_rigged_glb(
         raise InputError(f"{path}: faces have shape {f.shape} and dtype {f.dtype}, expected (F, 3) integers")
     if f.min() < 0 or f.max() >= num_vertices:
         raise InputError(f"{path}: faces index [{f.min()}, {f.max()}] but there are {num_vertices} vertices")
-    c = _as_array(colors)
+    uv = None
+    if texture is not None:
+        uv, png = texture
+        uv = _as_array(uv).astype(np.float64)
+        if uv.shape != (num_vertices, 2) or not np.all(np.isfinite(uv)):
+            raise InputError(f"{path}: texture uv have shape {uv.shape}, expected finite ({num_vertices}, 2)")
+        if not isinstance(png, (bytes, bytearray)) or not bytes(png[:8]) == b"\x89PNG\r\n\x1a\n":
+            raise InputError(f"{path}: the texture image must be PNG bytes")
+    if colors is None and uv is None:
+        raise InputError(f"{path}: give vertex colors or a texture")
+    c = np.ones((num_vertices, 3)) if colors is None else _as_array(colors)
     if c.shape != (num_vertices, 3):
         raise InputError(f"{path}: colors have shape {c.shape}, expected ({num_vertices}, 3)")
     c = c / 255.0 if c.dtype == np.uint8 else c.astype(np.float64)
@@ -254,7 +321,16 @@ def write_rigged_glb(
         )
     if not np.all(np.isfinite(w)) or w.min() < 0:
         raise InputError(f"{path}: skin_weights must be finite and non-negative")
-    joints_idx, weights = top_k_weights(w)
+    if influences not in INFLUENCE_CHOICES:
+        raise InputError(f"{path}: influences = {influences}, expected one of {INFLUENCE_CHOICES}")
+    axes = np.asarray(world_to_gltf, dtype=np.float64)
+    if axes.shape != (3, 3):
+        raise InputError(f"{path}: world_to_gltf has shape {axes.shape}, expected (3, 3)")
+    _check_rotations(axes, f"{path}: world_to_gltf")
+    joints_idx, weights = top_k_weights(w, influences)
+    # Bake glTF's axes into every position (see the module docstring for why not a root node).
+    v = v @ axes.T
+    joints_gltf = skeleton.rest_joints.astype(np.float64) @ axes.T
 
     normals = vertex_normals(v, f).astype(np.float64)
     # glTF requires unit normals; a vertex of degenerate faces only gets an arbitrary one.
@@ -266,14 +342,25 @@ def write_rigged_glb(
         v.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER, with_bounds=True
     )
     normal_accessor = builder.add(normals.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER)
-    color_accessor = builder.add(
-        srgb_to_linear(c).astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER
-    )
+    surface: dict[str, int] = {}
+    if uv is None:
+        surface["COLOR_0"] = builder.add(
+            srgb_to_linear(c).astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER
+        )
+    else:
+        surface["TEXCOORD_0"] = builder.add(uv.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC2, pygltflib.ARRAY_BUFFER)
     joint_type, joint_dtype = (
         (pygltflib.UNSIGNED_BYTE, np.uint8) if num_joints <= 256 else (pygltflib.UNSIGNED_SHORT, np.uint16)
     )
-    joints_accessor = builder.add(joints_idx.astype(joint_dtype), joint_type, pygltflib.VEC4, pygltflib.ARRAY_BUFFER)
-    weights_accessor = builder.add(weights, pygltflib.FLOAT, pygltflib.VEC4, pygltflib.ARRAY_BUFFER)
+    joint_sets = [
+        builder.add(np.ascontiguousarray(joints_idx[:, k : k + 4]).astype(joint_dtype), joint_type, pygltflib.VEC4,
+                    pygltflib.ARRAY_BUFFER)
+        for k in range(0, influences, 4)
+    ]
+    weight_sets = [
+        builder.add(np.ascontiguousarray(weights[:, k : k + 4]), pygltflib.FLOAT, pygltflib.VEC4, pygltflib.ARRAY_BUFFER)
+        for k in range(0, influences, 4)
+    ]
     indices = builder.add(
         f.astype(np.uint32).reshape(-1), pygltflib.UNSIGNED_INT, pygltflib.SCALAR,
         pygltflib.ELEMENT_ARRAY_BUFFER, with_bounds=True,
@@ -281,7 +368,7 @@ def write_rigged_glb(
 
     # Bind pose: identity rotations, so each joint's global bind transform is a translation to
     # its canonical position and the inverse bind matrix the opposite translation.
-    rest = skeleton.rest_joints
+    rest = joints_gltf
     offsets = rest.copy()
     offsets[1:] = rest[1:] - rest[skeleton.parents[1:]]
     inverse_bind = np.tile(np.eye(4), (num_joints, 1, 1))
@@ -307,8 +394,27 @@ def write_rigged_glb(
     mesh_node = num_joints
     nodes.append(pygltflib.Node(name="avatar", mesh=0, skin=0))
 
+    colour = pygltflib.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
+    material = pygltflib.Material(name="vertex_colour" if uv is None else "texture", pbrMetallicRoughness=colour,
+                                  doubleSided=False)
+    images, textures, samplers = [], [], []
+    if uv is not None:
+        builder.blob.extend(b"\0" * (-len(builder.blob) % 4))
+        builder.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(builder.blob), byteLength=len(png)))
+        builder.blob.extend(bytes(png))
+        images = [pygltflib.Image(name="base_colour", mimeType="image/png", bufferView=len(builder.views) - 1)]
+        # Linear filtering with mipmaps; clamp, since the atlas charts never wrap.
+        samplers = [pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                                      wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)]
+        textures = [pygltflib.Texture(sampler=0, source=0)]
+        colour.baseColorTexture = pygltflib.TextureInfo(index=0, texCoord=0)
+
     gltf = pygltflib.GLTF2(
-        asset=pygltflib.Asset(version="2.0", generator="igavatar"),
+        images=images, textures=textures, samplers=samplers,
+        asset=pygltflib.Asset(
+            version="2.0", generator="igavatar",
+            extras={"igavatar": {"world_to_gltf": axes.tolist(), "influences": influences}},
+        ),
         scene=0,
         scenes=[pygltflib.Scene(name="avatar", nodes=[0, mesh_node])],
         nodes=nodes,
@@ -318,8 +424,9 @@ def write_rigged_glb(
                 primitives=[
                     pygltflib.Primitive(
                         attributes=pygltflib.Attributes(
-                            POSITION=positions, NORMAL=normal_accessor, COLOR_0=color_accessor,
-                            JOINTS_0=joints_accessor, WEIGHTS_0=weights_accessor,
+                            POSITION=positions, NORMAL=normal_accessor, **surface,
+                            **{f"JOINTS_{n}": a for n, a in enumerate(joint_sets)},
+                            **{f"WEIGHTS_{n}": a for n, a in enumerate(weight_sets)},
                         ),
                         indices=indices,
                         material=0,
@@ -328,15 +435,7 @@ def write_rigged_glb(
                 ],
             )
         ],
-        materials=[
-            pygltflib.Material(
-                name="vertex_colour",
-                pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-                    baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0
-                ),
-                doubleSided=False,
-            )
-        ],
+        materials=[material],
         skins=[
             pygltflib.Skin(
                 name="skeleton", inverseBindMatrices=inverse_bind_accessor, skeleton=0,
@@ -346,7 +445,7 @@ def write_rigged_glb(
     )
 
     if animation is not None:
-        gltf.animations = [_add_animation(builder, animation, offsets[0], num_joints, path)]
+        gltf.animations = [_add_animation(builder, animation, offsets[0], num_joints, axes, path)]
 
     gltf.accessors = builder.accessors
     gltf.bufferViews = builder.views
@@ -361,9 +460,14 @@ def _add_animation(
     animation: tuple[np.ndarray, np.ndarray, float],
     root_offset: np.ndarray,
     num_joints: int,
+    world_to_gltf: np.ndarray,
     path: Path,
 ) -> pygltflib.Animation:
-    """Keyframe accessors and the Animation object for (rotations, root translation, fps)."""
+    """Keyframe accessors and the Animation object for (rotations, root translation, fps).
+
+    The keys come in the caller's frame and are stored in glTF's (`gltf_pose`); root_offset (3,)
+    is the root node's bind translation, already in glTF's frame.
+    """
     try:
         rotations, translation, fps = animation
     except (TypeError, ValueError):
@@ -386,6 +490,7 @@ def _add_animation(
     if not np.isfinite(fps) or fps <= 0:
         raise InputError(f"{path}: animation fps = {fps}, expected > 0")
     _check_rotations(rotations, f"{path}: animation rotations")
+    rotations, translation = gltf_pose(world_to_gltf, rotations, translation)
 
     times = builder.add(
         (np.arange(num_frames, dtype=np.float64) / float(fps)).astype(np.float32),
@@ -518,11 +623,12 @@ def _skin_root(gltf: pygltflib.GLTF2, joints: list[int]) -> int:
 def read_rigged_glb(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The skinned mesh of a GLB written by write_rigged_glb (or any single-primitive skinned GLB).
 
-    Returns a dict: vertices (V, 3) float32, faces (F, 3) int64, normals (V, 3) or None,
-    colors (V, 3) float sRGB in [0, 1] or None (COLOR_0 is linear in the file), joint_names (J,),
-    parents (J,) int64 in skin-joint order (-1 for the root), joints_bind (J, 3) joint positions
-    from the inverse bind matrices, inverse_bind (J, 4, 4), joints (V, 4) int64 and
-    weights (V, 4) float32 (JOINTS_0/WEIGHTS_0).
+    Returns a dict, in the file's (glTF, +Y up) frame: vertices (V, 3) float32, faces (F, 3)
+    int64, normals (V, 3) or None, uv (V, 2) TEXCOORD_0 or None, colors (V, 3) float sRGB in [0, 1] or None (COLOR_0 is linear
+    in the file), joint_names (J,), parents (J,) int64 in skin-joint order (-1 for the root),
+    joints_bind (J, 3) joint positions from the inverse bind matrices, inverse_bind (J, 4, 4),
+    joints (V, 4 S) int64 and weights (V, 4 S) float32 (JOINTS_n/WEIGHTS_n of the S sets side by
+    side), world_to_gltf (3, 3) the writer's recorded axes (identity if none).
     """
     gltf, blob = _load(path)
     return _read_skinned(gltf, blob, path)
@@ -544,6 +650,7 @@ def _read_skinned(gltf: pygltflib.GLTF2, blob: bytes, path: str | os.PathLike[st
     else:
         faces = read_accessor(gltf, blob, primitive.indices).astype(np.int64).reshape(-1, 3)
     normals = None if attributes.NORMAL is None else read_accessor(gltf, blob, attributes.NORMAL)
+    uv = None if attributes.TEXCOORD_0 is None else read_accessor(gltf, blob, attributes.TEXCOORD_0)
     colors = None
     if attributes.COLOR_0 is not None:
         colors = linear_to_srgb(read_accessor(gltf, blob, attributes.COLOR_0)[:, :3])
@@ -562,18 +669,36 @@ def _read_skinned(gltf: pygltflib.GLTF2, blob: bytes, path: str | os.PathLike[st
             read_accessor(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4), (0, 2, 1)
         ).astype(np.float64)
     bind = np.linalg.inv(inverse_bind)
+    # Every JOINTS_n/WEIGHTS_n pair, in order (n = 0, 1, ...), as one (V, 4 * sets) array.
+    joint_sets, weight_sets = [], []
+    while getattr(attributes, f"JOINTS_{len(joint_sets)}", None) is not None:
+        if getattr(attributes, f"WEIGHTS_{len(joint_sets)}", None) is None:
+            raise InputError(f"{path}: the skinned primitive has JOINTS_{len(joint_sets)} without WEIGHTS_{len(joint_sets)}")
+        weight_sets.append(getattr(attributes, f"WEIGHTS_{len(joint_sets)}"))
+        joint_sets.append(getattr(attributes, f"JOINTS_{len(joint_sets)}"))
     return {
         "vertices": vertices,
         "faces": faces,
         "normals": normals,
+        "uv": uv,
         "colors": colors,
         "joint_names": [gltf.nodes[n].name for n in joint_nodes],
         "parents": parents,
         "joints_bind": bind[:, :3, 3],
         "inverse_bind": inverse_bind,
-        "joints": read_accessor(gltf, blob, attributes.JOINTS_0).astype(np.int64),
-        "weights": read_accessor(gltf, blob, attributes.WEIGHTS_0).astype(np.float32),
+        "joints": np.concatenate([read_accessor(gltf, blob, a).astype(np.int64) for a in joint_sets], axis=1),
+        "weights": np.concatenate([read_accessor(gltf, blob, a).astype(np.float32) for a in weight_sets], axis=1),
+        "world_to_gltf": _world_to_gltf(gltf),
     }
+
+
+def _world_to_gltf(gltf: pygltflib.GLTF2) -> np.ndarray:
+    """The igavatar writer's recorded world -> glTF rotation (identity for other files)."""
+    extras = gltf.asset.extras or {}
+    if isinstance(extras, str):
+        extras = json.loads(extras)
+    recorded = extras.get("igavatar", {}).get("world_to_gltf") if isinstance(extras, dict) else None
+    return np.eye(3) if recorded is None else np.asarray(recorded, dtype=np.float64)
 
 
 def pose_glb_vertices(
@@ -585,15 +710,16 @@ def pose_glb_vertices(
 
     Replaces every skin joint node's rotation by the given one and adds `root_translation` to
     the root joint node's translation, composes node matrices down the node hierarchy, and skins
-    with jointMatrix_k = global(joint k) @ inverseBindMatrix_k and JOINTS_0/WEIGHTS_0 (the
-    skinned node's own transform is ignored, as glTF specifies).
+    with jointMatrix_k = global(joint k) @ inverseBindMatrix_k and every JOINTS_n/WEIGHTS_n set
+    (the skinned node's own transform is ignored, as glTF specifies). Everything is in the file's
+    (glTF) frame: convert a pose of igavatar's frame with `gltf_pose` first.
 
     Args:
         path: a GLB with one skinned mesh (e.g. from write_rigged_glb).
         local_rotations_rel_canonical: (J, 3, 3) joint rotations in skin-joint order.
         root_translation: (3,) offset added to the root joint's translation.
     Returns:
-        (V, 3) float64 posed vertices.
+        (V, 3) float64 posed vertices in the file's frame.
     """
     gltf, blob = _load(path)
     node = _skinned_node(gltf, path)

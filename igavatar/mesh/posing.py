@@ -40,15 +40,22 @@ def canonical_mesh(
 
 
 @torch.no_grad()
-def vertex_colors(avatar: Avatar, vertices: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """RGB (V, 3) uint8 of the colour field at canonical vertices (normals from the SDF)."""
+def surface_colors(avatar: Avatar, points: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """sRGB (P, 3) float32 in [0, 1] of the colour field at canonical points (normals from the SDF)."""
     device = avatar.canonical_box.device
     colours = []
-    for part in torch.from_numpy(np.asarray(vertices, np.float32)).split(chunk):
+    for part in torch.from_numpy(np.asarray(points, np.float32)).split(chunk):
         _, feature, gradient = avatar.sdf_field.forward_with_gradient(part.to(device))
         normal = torch.nn.functional.normalize(gradient, dim=-1)
         colours.append(avatar.color_field(feature, normal).cpu())
-    return (torch.cat(colours).clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    if not colours:
+        return np.zeros((0, 3), np.float32)
+    return torch.cat(colours).clamp(0, 1).numpy()
+
+
+def vertex_colors(avatar: Avatar, vertices: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """RGB (V, 3) uint8 of the colour field at canonical vertices (normals from the SDF)."""
+    return (surface_colors(avatar, vertices, chunk) * 255).round().astype(np.uint8)
 
 
 @torch.no_grad()
