@@ -56,7 +56,7 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-eq9-w0.01": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.01"],
     "smooth-released-w1": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "1"],
     "smooth-released-w10": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "10"],
-    "none-no-hull": ["--regularizer", "none", "--free-space-weight", "0"],
+    "smooth-hull": ["--regularizer", "smooth", "--free-space-weight", "1"],
 }
 METRICS: tuple[str, ...] = ("psnr_full_db", "psnr_mask_bbox_db", "ssim_full", "ssim_mask_bbox", "chamfer_l2_cm2",
                             "chamfer_l1_surface_mm", "normal_consistency_vertices", "normal_consistency_surface", "volumetric_iou")
