@@ -121,3 +121,23 @@ def test_success_replaces_the_previous_artifact(tmp_path):
     _write_dataset(tmp_path / "ds", payload=b"new")
     assert (tmp_path / "ds" / "sub" / "x.bin").read_bytes() == b"new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+
+def test_single_files_and_artifact_folders_get_the_usual_permissions(tmp_path):
+    """mkstemp/mkdtemp make private temporaries; what is renamed into place follows the umask
+    (a GLB served by a web server or shared with a team must be readable by others)."""
+    import os
+    import stat
+
+    from igavatar.artifacts.atomic import atomic_write_bytes, current_umask
+
+    old = os.umask(0o022)
+    try:
+        assert current_umask() == 0o022
+        atomic_write_bytes(tmp_path / "avatar.glb", b"glTF")
+        assert stat.S_IMODE((tmp_path / "avatar.glb").stat().st_mode) == 0o644
+        with atomic_directory(tmp_path / "mesh", kind="mesh") as tmp:
+            (tmp / "x.txt").write_text("x")
+        assert stat.S_IMODE((tmp_path / "mesh").stat().st_mode) == 0o755
+    finally:
+        os.umask(old)

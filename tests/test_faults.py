@@ -109,6 +109,16 @@ def test_an_existing_file_as_out_is_refused_and_kept(cli_runner, tiny_skeleton_c
     assert _leftovers(tmp_path) == []
 
 
+def test_a_link_to_an_artifact_as_out_is_refused_and_both_kept(cli_runner, tiny_model, tmp_path):
+    mesh = tmp_path / "mesh-real"
+    mesh.mkdir()
+    (mesh / "keep.txt").write_text("the link's target\n")
+    link = tmp_path / "mesh"
+    link.symlink_to(mesh, target_is_directory=True)
+    _one_error_line(cli_runner.invoke(app, _export_args(tiny_model, link)), 2, "is a symbolic link", "another --out")
+    assert link.is_symlink() and (mesh / "keep.txt").read_text() == "the link's target\n"
+
+
 def test_out_inside_an_input_or_containing_it_is_refused(cli_runner, tiny_model, tmp_path):
     model = tmp_path / "run" / "model"
     shutil.copytree(tiny_model, model)

@@ -94,9 +94,7 @@ def atomic_directory(target: Path, *, kind: str, inputs: Iterable[Path] = ()) ->
     try:
         with storage_errors(target):
             # mkdtemp makes the directory private (0700); an artifact gets the usual permissions.
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o777 & ~umask)
+            os.chmod(tmp, 0o777 & ~current_umask())
             yield tmp
         # The block may have run for minutes: check again that nobody put something else there.
         check_output_target(target, kind, inputs)
@@ -120,6 +118,13 @@ def atomic_directory(target: Path, *, kind: str, inputs: Iterable[Path] = ()) ->
         shutil.rmtree(old, ignore_errors=True)
 
 
+def current_umask() -> int:
+    """The process's umask (read by setting and restoring it: there is no getter)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write a single file via a temporary sibling and rename (same guarantee for one file).
 
@@ -132,6 +137,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         try:
             with os.fdopen(fd, "wb") as f:
                 f.write(data)
+            os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp's file is private (0600)
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

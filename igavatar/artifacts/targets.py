@@ -51,7 +51,13 @@ def check_output_target(target: Path, kind: str, inputs: Iterable[Path] = ()) ->
     if not target.exists() and not target.is_symlink():
         return
     how = f"give another --out, or delete {target} yourself if you no longer need it"
-    if not target.is_dir() or target.is_symlink():
+    if target.is_symlink():
+        # Replacing would swap the link for a folder and leave its target behind, unreported.
+        raise UnsafeOutputError(
+            f"--out {target}: is a symbolic link (to {target.resolve()}); igavatar writes artifacts as real "
+            f"folders and does not replace links: give the link's target as --out, or another --out"
+        )
+    if not target.is_dir():
         raise UnsafeOutputError(f"--out {target}: is an existing file, not an igavatar {kind} artifact; {how}")
     if not any(target.iterdir()):
         return

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from igavatar.artifacts.atomic import current_umask
 from igavatar.errors import InputError
 
 _COMPONENTS = ("R", "G", "B")
@@ -80,6 +81,7 @@ def write_exr(path: str | os.PathLike[str], channels: dict[str, np.ndarray]) -> 
     os.close(fd)
     try:
         OpenEXR.File(header, exr_channels).write(tmp)
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp's file is private (0600)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
