@@ -299,7 +299,7 @@ def capture_subset(capture: Path, count: int, dest: Path) -> Path:
     for name in chosen:
         for folder in ("images", "masks"):
             if (capture / folder / f"{name}.png").is_file():
-                (dest / folder / f"{name}.png").symlink_to(capture / folder / f"{name}.png")
+                (dest / folder / f"{name}.png").symlink_to((capture / folder / f"{name}.png").resolve())
     meta["frames"] = [meta["frames"][i] for i in index]
     meta["splits"] = {"train": chosen, "test": []}
     (dest / "capture.json").write_text(json.dumps(meta))
