@@ -143,6 +143,9 @@ def synth(
     garment: Annotated[str, typer.Option(help="Garment variant: shirt-trousers, dress, tight.")] = "shirt-trousers",
     texture: Annotated[str, typer.Option(help="Texture variant: stripes, checker, plain.")] = "stripes",
     seed: Annotated[int, typer.Option(help="Random seed (motion jitter, colours).")] = 0,
+    skeleton: Annotated[str, typer.Option(
+        help="How the poses are written: anny (the body model), bare (its joints as a bare skeleton, no template) "
+             "or root (a static subject: one root joint, held still while it turns; needs --test-frames 0).")] = "anny",
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory [default: ~/.cache/anny].")] = None,
     force: Annotated[bool, typer.Option(help="Redo even if an identical capture exists.")] = False,
     quiet: Quiet = False,
@@ -155,7 +158,7 @@ def synth(
     options = SynthOptions(
         out=out or RunLayout(run_dir).capture, resolution=resolution, train_frames=train_frames,
         test_frames=test_frames, holdout_frames=holdout_frames, phenotype=tuple(phenotype or ()), garment=garment, texture=texture,
-        seed=seed, anny_cache=anny_cache, force=force,
+        seed=seed, skeleton=skeleton, anny_cache=anny_cache, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_synth(options, progress=progress)

@@ -42,6 +42,8 @@ def canonical_truth(capture_dir: Path | None, subject: dict) -> tuple[np.ndarray
     if path is None or not path.is_file():
         return None
     with np.load(path) as rest:
+        if int(rest["weights_index"].max()) >= len(subject["parents"]):
+            return None  # the capture's skeleton is not the one the truth is skinned to (a lone root)
         transforms = rest_to_canonical_transforms(subject["rest_joints"], subject["parents"], subject["canonical_rotations"])
         vertices = canonical_from_rest(rest["vertices"], rest["weights_index"], rest["weights_value"], transforms)
         return vertices, np.asarray(rest["faces"], np.int64)
@@ -86,5 +88,6 @@ def canonical_section(
     rows = [("prediction", pred[0], pred[1])]
     if truth is not None:
         rows.append(("truth (clothed)", truth[0], truth[1]))
-    rows.append(("template (naked)", template_v, template_f))
+    prior = dataset_manifest["data"].get("shape_prior", "template")
+    rows.append(({"template": "template (naked)"}.get(prior, f"shape prior ({prior.replace('_', ' ')})"), template_v, template_f))
     return section, canonical_views_image(rows)

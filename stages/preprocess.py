@@ -15,8 +15,9 @@ Dataset layout (schema `dataset`, version 1):
                          skinning_grid (J,D,H,W), grid_box_min (3,), grid_box_max (3,),
                          canonical_box (2,3)
     template.ply         canonical shape prior: the body model's template mesh, or for a bare
-                         skeleton a union of capsules around the bones (manifest data
-                         "shape_prior": "template" | "capsules")
+                         skeleton the masks' visual hull in canonical space (capsules around the
+                         bones when fewer than MIN_HULL_VIEWS training frames can vote) (manifest
+                         data "shape_prior": "template" | "visual_hull" | "capsules")
     contact_sheet.png    frames with mask and projected skeleton, to check alignment by eye
 """
 
@@ -45,6 +46,7 @@ from igavatar.capture.images import project_points, resize_image, resize_mask, r
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_smpl import smpl_model_for
+from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import ArtifactError, InputError
 from igavatar.skinning.bone_weights import build_bone_skinning_grid
 from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box
@@ -53,6 +55,15 @@ from stages.resources import peak_ram_bytes
 
 #: Margin (metres) around the template for clothing, hair and loose garments.
 BOX_MARGIN_M = 0.12
+#: A bare skeleton's shape prior is the masks' visual hull when at least this many training frames
+#: vote (fewer views leave a hull too coarse to trust; capsules around the bones are used then).
+MIN_HULL_VIEWS = 8
+#: At most this many training frames (evenly spaced) vote on the hull, which bounds time and memory.
+MAX_HULL_VIEWS = 64
+#: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
+HULL_BOX_SQUEEZE = 3.0
+#: Grid spacing (metres) of the hull prior.
+HULL_CELL_M = 0.02
 CONTACT_SHEET_FRAMES = 12
 
 
@@ -136,6 +147,41 @@ def _segmentation_body(subject: PosedSubject, canonical: CanonicalSubject, index
     return PosedBody(joints=canonical.posed_joints[index].double().numpy(), parents=subject.skeleton.parents)
 
 
+def _hull_prior(
+    subject: PosedSubject,
+    canonical: CanonicalSubject,
+    views: list[int],
+    masks: dict[int, np.ndarray],
+    K: np.ndarray,
+    w2c: np.ndarray,
+    grid_resolution: tuple[int, int, int],
+) -> tuple | None:
+    """A bare skeleton's shape prior from the masks: (vertices, faces, "visual_hull", grid box min,
+    max, skinning grid, padded posed boxes), or None when the masks keep nothing.
+
+    The bones' weights skin a generous search box (igavatar.capture.visual_hull.search_box) into
+    the voting frames; the kept cells' mesh then sizes the final boxes and weight grid, and its
+    vertices skinned into every frame give the posed boxes.
+    """
+    lo, hi = search_box(canonical.canonical_joints)
+    search_grid = build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, lo, hi, grid_resolution)
+    skin = grid_skin(search_grid, lo, hi, canonical.bone_transforms)
+    mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
+    hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M)
+    if hull is None:
+        return None
+    vertices = hull.vertices
+    # Squeezed less than a template's box: a hull is deeper than the body it bounds.
+    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE)
+    grid = build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, grid_resolution)
+    skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
+    posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
+    posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])
+    posed_boxes[:, 0] -= BOX_MARGIN_M
+    posed_boxes[:, 1] += BOX_MARGIN_M
+    return vertices, hull.faces, "visual_hull", box_min, box_max, grid, posed_boxes
+
+
 def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Read the capture, pose its body model, resize images, build the skinning grid, write the dataset.
 
@@ -155,9 +201,9 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     input_json = [record.to_json() for record in inputs]
     out = Path(options.out)
     output_inputs = [capture.root, options.smpl_model]
-    check_output_target(out, "dataset", output_inputs)
-    if not options.force and _up_to_date(out, config, input_json):
+    if not options.force and _up_to_date(out, config, input_json):  # read-only, so before the target check
         return {"dataset": str(out), "skipped": "inputs and options unchanged (use --force to redo)"}
+    check_output_target(out, "dataset", output_inputs)
 
     tick = time.perf_counter()
     subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
@@ -179,6 +225,13 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
         )
         body_points, prior_faces, shape_prior = prior.vertices, prior.faces, "capsules"
         posed_boxes = prior.posed_boxes.clone()  # joints alone miss the crown, hands and feet
+    # A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
+    # the masks' visual hull replaces them once the masks are read (below).
+    train_frames = [i for i, name in enumerate(capture.frames) if name in set(capture.splits["train"])]
+    hull_views = spread_views(train_frames, MAX_HULL_VIEWS) if canonical.template_vertices is None else []
+    if len(hull_views) < MIN_HULL_VIEWS:
+        hull_views = []
+    hull_masks: dict[int, np.ndarray] = {}
     canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)
     canonical_hi = torch.minimum(body_points.amax(0) + BOX_MARGIN_M, box_max)
     timings["skinning_grid_s"] = time.perf_counter() - tick
@@ -220,6 +273,8 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                         "give a mask with the subject in white (255), drop the frame from capture.json, "
                         "or remove masks/ to have them estimated"
                     )
+                if i in hull_views:
+                    hull_masks[i] = mask
                 cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
                 if i in sheet_frames:
@@ -227,6 +282,15 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                     sheet_items.append((rgb, mask, joints_uv, frame if capture.has_masks else f"{frame} (est.)"))
                 advance(1)
         timings["frames_s"] = time.perf_counter() - tick
+
+        if hull_views:
+            tick = time.perf_counter()
+            hull = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution)
+            if hull is not None:
+                body_points, prior_faces, shape_prior, box_min, box_max, skinning_grid, posed_boxes = hull
+                canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)
+                canonical_hi = torch.minimum(body_points.amax(0) + BOX_MARGIN_M, box_max)
+            timings["visual_hull_s"] = time.perf_counter() - tick
 
         sheet = contact_sheet(sheet_items, subject.skeleton.parents)
         cv2.imwrite(str(tmp / "contact_sheet.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))

@@ -34,6 +34,7 @@ from igavatar.errors import ArtifactError, InputError
 from igavatar.metrics.canonical import REST_SURFACE_FILE
 from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject, vertex_normals
 from igavatar.synth.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
+from igavatar.synth.skeleton_capture import bare_skeleton_poses, root_only_poses
 from igavatar.synth.scene import frame_static_camera, lambert_shading, light_position, yaw_about_vertical
 from igavatar.synth.texture import TEXTURES, SolidTexture, find_landmarks, make_texture, region_ids
 from stages.progress import NULL_PROGRESS, ProgressSink
@@ -46,6 +47,8 @@ TEST_MOTIONS: tuple[tuple[str, float, tuple[float, float]], ...] = (
     ("arm_raise", 2.0, (-0.4, 0.4)),
     ("squat", 2.5, (0.3, 0.8)),
 )
+#: How `synth` writes the poses: with the body model, as its bare skeleton, or as one root joint.
+SKELETONS = ("anny", "bare", "root")
 CAMERA_DISTANCE_M = 3.0
 SUPERSAMPLE = 2
 BACKGROUND = (0.0, 0.0, 0.0)
@@ -67,6 +70,10 @@ class SynthOptions:
         garment: outfit, one of igavatar.synth.garments.GARMENTS.
         texture: texture style, one of igavatar.synth.texture.TEXTURES.
         seed: seeds colours, printed text, motion jitter and test-motion yaw.
+        skeleton: how the poses are written (see SKELETONS): "anny" (the body model, the default),
+            "bare" (Anny's joints as a bare skeleton, no body model: the skeleton-only path), or
+            "root" (a static subject: one root joint, the body held still in the A-pose while
+            it turns; no novel-pose test frames).
         anny_cache: Anny cache directory (None: $ANNY_CACHE_DIR or ~/.cache/anny).
         force: rewrite even if `out` already holds a capture made with the same config.
     """
@@ -80,6 +87,7 @@ class SynthOptions:
     garment: str = "shirt-trousers"
     texture: str = "stripes"
     seed: int = 0
+    skeleton: str = "anny"
     anny_cache: Path | None = None
     force: bool = False
 
@@ -121,6 +129,13 @@ def _check_options(options: SynthOptions) -> None:
         raise InputError(f"--garment {options.garment!r}: choose one of {', '.join(GARMENTS)}")
     if options.texture not in TEXTURES:
         raise InputError(f"--texture {options.texture!r}: choose one of {', '.join(TEXTURES)}")
+    if options.skeleton not in SKELETONS:
+        raise InputError(f"--skeleton {options.skeleton!r}: choose one of {', '.join(SKELETONS)}")
+    if options.skeleton == "root" and options.test_frames:
+        raise InputError(
+            f"--skeleton root --test-frames {options.test_frames}: a static subject holds one pose, so it has no "
+            "novel-pose test frames; give --test-frames 0 and --holdout-frames N for test views"
+        )
 
 
 def resolved_config(options: SynthOptions) -> dict:
@@ -137,6 +152,8 @@ def resolved_config(options: SynthOptions) -> dict:
         "camera_distance_m": CAMERA_DISTANCE_M,
         "supersample": SUPERSAMPLE,
         "background": list(BACKGROUND),
+        # Only when not the default, so that captures made before the option keep their config.
+        **({"skeleton": options.skeleton} if options.skeleton != "anny" else {}),
     }
 
 
@@ -152,13 +169,16 @@ class SequencePart:
 
 
 def make_sequence(
-    body: AnnyBody, train_frames: int, test_frames: int, seed: int, holdout_frames: int = 0
+    body: AnnyBody, train_frames: int, test_frames: int, seed: int, holdout_frames: int = 0, static: bool = False
 ) -> list[SequencePart]:
-    """The training turn, the hold-out turn (if any), then the test motions (split as evenly as possible)."""
+    """The training turn, the hold-out turn (if any), then the test motions (split as evenly as possible).
+
+    `static` holds the body still in the A-pose while it turns (no small motion in either turn).
+    """
     skeleton = body.skeleton
     parts = [
         SequencePart(
-            motion=turntable("anny", train_frames, seed, small_motion=True, fps=TRAIN_FPS, skeleton=skeleton),
+            motion=turntable("anny", train_frames, seed, small_motion=not static, fps=TRAIN_FPS, skeleton=skeleton),
             split="train",
             frames=tuple(f"train_{i:04d}" for i in range(train_frames)),
             seed=seed,
@@ -169,7 +189,7 @@ def make_sequence(
         # Another seed gives other small motions; the yaw puts its views half-way between the
         # training turn's (which steps 2 pi / train_frames per frame).
         parts.append(SequencePart(
-            motion=turntable("anny", holdout_frames, seed + 100, small_motion=True, fps=TRAIN_FPS, skeleton=skeleton),
+            motion=turntable("anny", holdout_frames, seed + 100, small_motion=not static, fps=TRAIN_FPS, skeleton=skeleton),
             split="test", frames=tuple(f"test_holdout_{i:04d}" for i in range(holdout_frames)),
             seed=seed + 100, yaw=float(np.pi / train_frames),
         ))
@@ -298,9 +318,9 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     _check_options(options)
     config = resolved_config(options)
     out = Path(options.out)
-    check_output_target(out, "capture")
-    if not options.force and _existing_matches(out, config):
+    if not options.force and _existing_matches(out, config):  # read-only, so before the target check
         return {"path": str(out), "skipped": True, "reason": "a capture with the same config exists (use --force to redo)"}
+    check_output_target(out, "capture")
 
     started = time.perf_counter()
     timings: dict[str, float] = {}
@@ -309,11 +329,21 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     texture = build_texture(body, options.texture, options.seed)
     timings["subject_s"] = time.perf_counter() - started
 
-    parts = make_sequence(body, options.train_frames, options.test_frames, options.seed, options.holdout_frames)
+    parts = make_sequence(body, options.train_frames, options.test_frames, options.seed, options.holdout_frames,
+                          static=options.skeleton == "root")
     frames = [name for part in parts for name in part.frames]
     local_rotations, root_translation = sequence_poses(body, parts)
     x_posed = pose_subject(subject, body, local_rotations, root_translation)
-    pose_parameters = body.pose_parameters_from_local_rotations(local_rotations, root_translation).numpy()
+    if options.skeleton == "anny":
+        poses = {
+            "pose_parameters": body.pose_parameters_from_local_rotations(local_rotations, root_translation).numpy(),
+            "phenotype_labels": np.array(body.phenotype_labels, dtype=np.str_),
+            "phenotype_values": body.phenotype_values,
+        }
+    elif options.skeleton == "bare":
+        poses = bare_skeleton_poses(body.skeleton, local_rotations, root_translation)
+    else:
+        poses = root_only_poses(x_posed)
     size = int(options.resolution)
     K, w2c = frame_static_camera(x_posed.reshape(-1, 3), size, size, distance=CAMERA_DISTANCE_M)
     light = light_position(w2c)
@@ -322,7 +352,7 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     meta = {
         "format": "igavatar-capture",
         "version": 1,
-        "body_model": "anny",
+        "body_model": "anny" if options.skeleton == "anny" else "skeleton",
         "frames": frames,
         "splits": {
             "train": [f for p in parts if p.split == "train" for f in p.frames],
@@ -367,12 +397,7 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
                 trimesh.Trimesh(x_world, subject.faces, process=False).export(tmp / "scans" / f"{name}.ply")
                 advance(1)
         np.savez(tmp / "cameras.npz", K=K, w2c=w2c, height=np.int64(size), width=np.int64(size))
-        np.savez(
-            tmp / "poses.npz",
-            pose_parameters=pose_parameters,
-            phenotype_labels=np.array(body.phenotype_labels, dtype=np.str_),
-            phenotype_values=body.phenotype_values,
-        )
+        np.savez(tmp / "poses.npz", **poses)
         _write_rest_surface(tmp / REST_SURFACE, subject)
         (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n")
         timings["render_s"] = time.perf_counter() - render_started

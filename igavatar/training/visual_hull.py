@@ -16,7 +16,6 @@ inside the silhouettes.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
+from igavatar.capture.visual_hull import MaskViews, free_points, grid_points, grid_spacing, spread_views, vote_masks
 from igavatar.model.deformer import FastSnarfDeformer
 from igavatar.training.data import TrainingData
 
@@ -68,14 +68,6 @@ class CanonicalHull:
         return value.reshape(-1)
 
 
-def _grid_points(box_min: torch.Tensor, box_max: torch.Tensor, cell_size: float) -> tuple[torch.Tensor, tuple[int, int, int]]:
-    """Cell-corner points of a grid over the box (align_corners) as (D*H*W, 3) and the shape (D, H, W)."""
-    counts = [max(2, int(math.ceil(float(hi - lo) / cell_size)) + 1) for lo, hi in zip(box_min, box_max)]
-    axes = [torch.linspace(float(lo), float(hi), n) for lo, hi, n in zip(box_min, box_max, counts)]
-    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    return torch.stack((x, y, z), dim=-1).reshape(-1, 3), (counts[2], counts[1], counts[0])
-
-
 @torch.no_grad()
 def canonical_visual_hull(
     deformer: FastSnarfDeformer,
@@ -96,50 +88,31 @@ def canonical_visual_hull(
         box: (2, 3) canonical box of the grid (the SDF's box).
         cell_size: grid spacing in metres.
         max_views: at most this many training frames vote (evenly spaced), which bounds the cost.
-        mask_dilation_px: masks are dilated by this many pixels first, so that small errors of
-            pose, camera or mask do not carve the subject.
-        min_outside_fraction, min_outside: a point is free when at least
-            max(min_outside, min_outside_fraction * views that see it) views see background there.
-        chunk_size: points pushed through LBS at once.
+        mask_dilation_px, min_outside_fraction, min_outside, chunk_size: see
+            igavatar.capture.visual_hull.vote_masks and free_points.
     Returns:
         CanonicalHull on the CPU.
     """
     box = box.detach().float().cpu()
-    points, shape = _grid_points(box[0], box[1], cell_size)
-    frames = data.train_indices.tolist()
-    if len(frames) > max_views:
-        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_views).round().astype(int)]
+    points, shape = grid_points(box[0], box[1], cell_size)
+    frames = spread_views(data.train_indices.tolist(), max_views)
     device = deformer.weights_grid.device
-    kernel = np.ones((2 * mask_dilation_px + 1,) * 2, np.uint8)
-    seen = torch.zeros(points.shape[0], dtype=torch.int32)
-    inside = torch.zeros(points.shape[0], dtype=torch.int32)
-    height, width = data.image_size
-    for index in frames:
-        mask = data.masks[index].numpy().astype(np.uint8)
-        if mask_dilation_px > 0:
-            mask = ndimage.binary_dilation(mask, structure=kernel).astype(np.uint8)
-        mask_t = torch.from_numpy(mask.astype(bool))
-        frame = deformer.prepare(data.bone_transforms[index].to(device))
-        K, w2c = data.K[index].double(), data.w2c[index].double()
-        for start in range(0, points.shape[0], chunk_size):
-            chunk = points[start : start + chunk_size]
-            x_world = deformer.forward_skinning(chunk.to(device), frame).double().cpu()
-            x_camera = x_world @ w2c[:3, :3].T + w2c[:3, 3]
-            depth = x_camera[:, 2]
-            uv = (x_camera @ K.T)[:, :2] / depth.clamp_min(1e-6)[:, None]
-            u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
-            visible = (depth > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-            hit = torch.zeros_like(visible)
-            hit[visible] = mask_t[v[visible], u[visible]]
-            seen[start : start + chunk_size] += visible.int()
-            inside[start : start + chunk_size] += hit.int()
-    outside = seen - inside
-    needed = torch.clamp(torch.ceil(min_outside_fraction * seen.float()), min=float(min_outside)).int()
-    free = (outside >= needed).reshape(shape)
+
+    prepared: dict[int, object] = {}  # the current view's frame, reused over its chunks
+
+    def skin(index: int, x_canonical: torch.Tensor) -> torch.Tensor:
+        if index not in prepared:
+            prepared.clear()
+            prepared[index] = deformer.prepare(data.bone_transforms[index].to(device))
+        return deformer.forward_skinning(x_canonical.to(device), prepared[index])
+
+    views = MaskViews(masks=[data.masks[i].numpy() for i in frames], K=data.K[frames].numpy(),
+                      w2c=data.w2c[frames].numpy(), frames=frames)
+    seen, inside = vote_masks(points, skin, views, mask_dilation_px, chunk_size)
+    free = free_points(seen, inside, min_outside_fraction, min_outside).reshape(shape)
     # Distance from each free cell to the nearest kept one: the SDF there is at least this much
     # (the surface is inside the hull). Anisotropic spacing: the grid's cells need not be cubes.
-    spacing = [float(box[1, axis] - box[0, axis]) / (shape[2 - axis] - 1) for axis in (2, 1, 0)]
-    distance = ndimage.distance_transform_edt(free.numpy(), sampling=spacing).astype(np.float32)
+    distance = ndimage.distance_transform_edt(free.numpy(), sampling=grid_spacing(box[0], box[1], shape)).astype(np.float32)
     return CanonicalHull(
         box_min=box[0].clone(), box_max=box[1].clone(),
         seen=seen.reshape(shape), inside=inside.reshape(shape), free=free,

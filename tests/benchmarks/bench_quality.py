@@ -43,6 +43,13 @@ SUBJECTS: dict[str, list[str]] = {
     "plain-heavy": ["--seed", "11", "--phenotype", "gender=0.2", "--phenotype", "weight=0.8", "--phenotype", "height=0.8",
                     "--texture", "plain"],
 }
+#: Subjects not run by default: the skeleton-only path (the same subjects' joints, no template:
+#: the prior is the masks' visual hull) and a static subject (one root joint, held still while it
+#: turns, so its only test frames are the hold-out turn's new views).
+EXTRA_SUBJECTS: dict[str, list[str]] = {
+    **{f"{name}-bare": [*args, "--skeleton", "bare"] for name, args in SUBJECTS.items()},
+    "static-root": ["--seed", "3", "--skeleton", "root", "--test-frames", "0", "--texture", "checker"],
+}
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
 SMOOTH_VARIANTS: dict[str, list[str]] = {
@@ -225,7 +232,8 @@ def canonical_table(subject: dict) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, default=Path("igavatar-bench-quality"))
-    parser.add_argument("--subjects", default=",".join(SUBJECTS), help=f"comma-separated, of {', '.join(SUBJECTS)}")
+    parser.add_argument("--subjects", default=",".join(SUBJECTS),
+                        help=f"comma-separated, of {', '.join((*SUBJECTS, *EXTRA_SUBJECTS))}")
     parser.add_argument("--variants", default=",".join(VARIANTS),
                         help=f"comma-separated, of {', '.join((*VARIANTS, *SMOOTH_VARIANTS))}")
     parser.add_argument("--preset", default="cpu")
@@ -255,7 +263,7 @@ def main() -> None:
     args.seeds = [int(v) for v in args.seeds.split(",") if v]
     args.seed = args.seeds[0]
     unknown = [v for v in args.variants if v not in VARIANTS and v not in SMOOTH_VARIANTS]
-    unknown += [s for s in args.subjects.split(",") if s not in SUBJECTS]
+    unknown += [s for s in args.subjects.split(",") if s not in SUBJECTS and s not in EXTRA_SUBJECTS]
     if unknown:
         parser.error(f"unknown variants/subjects: {unknown}")
 
@@ -268,7 +276,7 @@ def main() -> None:
         "subjects": [],
     }
     for name in args.subjects.split(","):
-        results["subjects"].append(run_subject(name, SUBJECTS[name], args))
+        results["subjects"].append(run_subject(name, {**SUBJECTS, **EXTRA_SUBJECTS}[name], args))
     table = markdown(results)
     print("\n" + table)
     if args.write_results:

@@ -1,0 +1,223 @@
+"""The masks' visual hull in canonical space: canonical points voted in or out of the training masks.
+
+    views = MaskViews(masks, K, w2c, frames)                         # the training frames that vote
+    seen, inside = vote_masks(points_canonical, skin, views)          # (P,) int32 each
+    prior = hull_prior_mesh(box, skin, views, cell_size=0.02)         # a closed mesh of the hull
+
+Forward skinning needs no root finding: `skin(frame, x_canonical)` pushes canonical points into a
+frame's world space, where they are projected into its mask. A point that a robust number of views
+see as background is free space; since the subject lies inside every mask, its surface lies inside
+what is left. The trainer uses the free part as a lower bound of the SDF
+(igavatar.training.visual_hull); preprocess meshes the kept part as the shape prior of a capture
+with no body-model template (a bare skeleton, or a single root joint: a person standing still,
+filmed from all around), where capsules around the bones would be a sliver or nothing at all.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+#: (frame index, (P, 3) canonical points) -> (P, 3) world points of that frame.
+SkinFn = Callable[[int, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class MaskViews:
+    """The views that vote: one mask and camera per training frame.
+
+    Attributes:
+        masks: V arrays (H, W) bool, subject = True.
+        K: (V, 3, 3) intrinsics of the masks' pixel grid.
+        w2c: (V, 4, 4) world -> camera (OpenCV: +z forward).
+        frames: V frame indices passed to the skin callable.
+    """
+
+    masks: Sequence[np.ndarray]
+    K: np.ndarray
+    w2c: np.ndarray
+    frames: Sequence[int]
+
+
+def spread_views(frames: Sequence[int], max_views: int) -> list[int]:
+    """At most `max_views` of `frames`, evenly spaced (bounds the cost of a long capture)."""
+    frames = list(frames)
+    if len(frames) <= max_views:
+        return frames
+    return [frames[i] for i in np.linspace(0, len(frames) - 1, max_views).round().astype(int)]
+
+
+def grid_points(box_min: torch.Tensor, box_max: torch.Tensor, cell_size: float) -> tuple[torch.Tensor, tuple[int, int, int]]:
+    """Cell-corner points of a grid over the box (align_corners) as (D*H*W, 3) and the shape (D, H, W).
+
+    Index order D<->z, H<->y, W<->x (as the skinning grid and `grid_sample`).
+    """
+    counts = [max(2, int(math.ceil(float(hi - lo) / cell_size)) + 1) for lo, hi in zip(box_min, box_max)]
+    axes = [torch.linspace(float(lo), float(hi), n) for lo, hi, n in zip(box_min, box_max, counts)]
+    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return torch.stack((x, y, z), dim=-1).reshape(-1, 3), (counts[2], counts[1], counts[0])
+
+
+def grid_spacing(box_min: torch.Tensor, box_max: torch.Tensor, shape: tuple[int, int, int]) -> list[float]:
+    """Metres between neighbouring points along (D, H, W) = (z, y, x) of a `grid_points` grid."""
+    return [float(box_max[axis] - box_min[axis]) / (shape[2 - axis] - 1) for axis in (2, 1, 0)]
+
+
+@torch.no_grad()
+def vote_masks(
+    points_canonical: torch.Tensor,
+    skin: SkinFn,
+    views: MaskViews,
+    mask_dilation_px: int = 2,
+    chunk_size: int = 262144,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Count, for every canonical point, the views that see it and those whose mask holds it.
+
+    Args:
+        points_canonical: (P, 3) canonical points (CPU).
+        skin: forward skinning into a frame's world space.
+        views: the voting masks and cameras.
+        mask_dilation_px: masks are dilated by this many pixels first, so that small errors of
+            pose, camera or mask do not carve the subject.
+        chunk_size: points skinned at once.
+    Returns:
+        seen (P,) int32: views in which the point projects into the image in front of the camera;
+        inside (P,) int32: views in which it falls inside the (dilated) mask.
+    """
+    kernel = np.ones((2 * mask_dilation_px + 1,) * 2, bool)
+    seen = torch.zeros(points_canonical.shape[0], dtype=torch.int32)
+    inside = torch.zeros(points_canonical.shape[0], dtype=torch.int32)
+    for mask, K, w2c, frame in zip(views.masks, views.K, views.w2c, views.frames):
+        mask = np.asarray(mask, bool)
+        if mask_dilation_px > 0:
+            mask = ndimage.binary_dilation(mask, structure=kernel)
+        height, width = mask.shape
+        mask_t = torch.from_numpy(mask)
+        K, w2c = torch.as_tensor(np.asarray(K), dtype=torch.float64), torch.as_tensor(np.asarray(w2c), dtype=torch.float64)
+        for start in range(0, points_canonical.shape[0], chunk_size):
+            x_world = skin(int(frame), points_canonical[start : start + chunk_size]).double().cpu()
+            x_camera = x_world @ w2c[:3, :3].T + w2c[:3, 3]
+            depth = x_camera[:, 2]
+            uv = (x_camera @ K.T)[:, :2] / depth.clamp_min(1e-6)[:, None]
+            u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
+            visible = (depth > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+            hit = torch.zeros_like(visible)
+            hit[visible] = mask_t[v[visible], u[visible]]
+            seen[start : start + chunk_size] += visible.int()
+            inside[start : start + chunk_size] += hit.int()
+    return seen, inside
+
+
+def free_points(seen: torch.Tensor, inside: torch.Tensor, min_outside_fraction: float = 0.1, min_outside: int = 2) -> torch.Tensor:
+    """bool, same shape: points that at least max(min_outside, min_outside_fraction * seen) views
+    see as background. The fraction tolerates a few views whose mask or pose is off."""
+    needed = torch.clamp(torch.ceil(min_outside_fraction * seen.float()), min=float(min_outside)).int()
+    return (seen - inside) >= needed
+
+
+@dataclass(frozen=True)
+class HullPrior:
+    """The kept part of the visual hull as a closed mesh in canonical space.
+
+    Attributes:
+        vertices: (V, 3) float32 canonical vertices.
+        faces: (F, 3) int64, normals outwards.
+        cell_size: metres between the grid's points.
+        views: how many views voted.
+        touches_box: the kept region reaches the search box's side (the box may cut the subject).
+    """
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    cell_size: float
+    views: int
+    touches_box: bool
+
+
+def hull_prior_mesh(
+    box: torch.Tensor,
+    skin: SkinFn,
+    views: MaskViews,
+    cell_size: float = 0.02,
+    mask_dilation_px: int = 2,
+    min_outside_fraction: float = 0.1,
+    min_seen_fraction: float = 0.5,
+) -> HullPrior | None:
+    """Mesh the visual hull's kept cells in a canonical search box; None if nothing is kept.
+
+    A grid point is kept when it is not free (see `free_points`) and at least `min_seen_fraction`
+    of the views see it (a point no camera sees is no evidence of the subject). Of the kept points
+    the largest connected part is meshed, its inner cavities filled, after a slight blur so that
+    the surface is not staircased at the grid's cells.
+
+    Args:
+        box: (2, 3) canonical search box (generous: the subject must lie inside).
+        skin, views, mask_dilation_px, min_outside_fraction: as `vote_masks` / `free_points`.
+        cell_size: grid spacing in metres.
+        min_seen_fraction: of the views, how many must see a point for it to count.
+    """
+    from skimage.measure import marching_cubes
+
+    box = torch.as_tensor(box).detach().float().cpu()
+    points, shape = grid_points(box[0], box[1], cell_size)
+    seen, inside = vote_masks(points, skin, views, mask_dilation_px)
+    free = free_points(seen, inside, min_outside_fraction, min_outside=2)
+    kept = (~free & (seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))).reshape(shape).numpy()
+    labels, count = ndimage.label(kept)
+    if count == 0:
+        return None
+    sizes = ndimage.sum_labels(kept, labels, index=np.arange(1, count + 1))
+    kept = ndimage.binary_fill_holes(labels == (int(np.argmax(sizes)) + 1))
+    touches = bool(kept[[0, -1]].any() or kept[:, [0, -1]].any() or kept[:, :, [0, -1]].any())
+    # Zero padding closes the surface where the region touches the box; the blur rounds the cells.
+    volume = ndimage.gaussian_filter(np.pad(kept.astype(np.float32), 1), sigma=0.7)
+    spacing = grid_spacing(box[0], box[1], shape)
+    vertices_zyx, faces, _, _ = marching_cubes(volume, level=0.5, spacing=tuple(spacing))
+    vertices = vertices_zyx[:, ::-1] - np.asarray(spacing[::-1]) + box[0].numpy()  # (z, y, x) -> (x, y, z), undo the pad
+    faces = faces.astype(np.int64)
+    # skimage's winding depends on the gradient's sign; make the normals point out of the hull.
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    if float(np.einsum("ij,ij->", a, np.cross(b - a, c - a))) < 0:
+        faces = faces[:, ::-1].copy()
+    return HullPrior(
+        vertices=torch.from_numpy(np.ascontiguousarray(vertices, np.float32)), faces=torch.from_numpy(faces),
+        cell_size=float(cell_size), views=len(views.frames), touches_box=touches,
+    )
+
+
+def grid_skin(weights_grid: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor, bone_transforms: torch.Tensor) -> SkinFn:
+    """Forward LBS through a skinning-weight grid, as a SkinFn.
+
+    Args:
+        weights_grid: (J, D, H, W) weights over [box_min, box_max].
+        bone_transforms: (N, J, 4, 4) canonical -> posed world, per frame.
+    """
+    from igavatar.skinning.grid import apply_affine, blended_transform_grid, sample_blended_transforms
+
+    cache: dict[int, torch.Tensor] = {}  # the current frame's blended grid, reused over its chunks
+
+    def skin(frame: int, x_canonical: torch.Tensor) -> torch.Tensor:
+        if frame not in cache:
+            cache.clear()
+            cache[frame] = blended_transform_grid(weights_grid.float(), bone_transforms[frame].float())
+        return apply_affine(sample_blended_transforms(cache[frame], box_min, box_max, x_canonical.float()), x_canonical.float())
+
+    return skin
+
+
+def search_box(joints_canonical: torch.Tensor, margin_m: float = 0.35, min_half_m: float = 1.1) -> torch.Tensor:
+    """(2, 3) canonical box in which to look for a subject known only by its joints.
+
+    The joints' box grown by `margin_m` (crown, hands and feet lie beyond their joints), and at
+    least `min_half_m` either side of the joints' centre on every axis, so that a skeleton of one
+    joint (a static subject) still gets room for a whole standing person.
+    """
+    joints = torch.as_tensor(joints_canonical).float()
+    lo, hi = joints.amin(0) - margin_m, joints.amax(0) + margin_m
+    centre = (joints.amin(0) + joints.amax(0)) / 2
+    return torch.stack((torch.minimum(lo, centre - min_half_m), torch.maximum(hi, centre + min_half_m)))

@@ -1,0 +1,132 @@
+"""The visual-hull shape prior of captures with no template, and the static (root-only) subject.
+
+Analytic: the hull mesh of two spheres seen by a turntable is closed, outward, holds both spheres
+and leaves the gap between them; a rigid turn written as one root joint reproduces every frame.
+End to end: `synth --skeleton root` -> `preprocess` gives a hull prior that holds the true surface
+and is not much larger than it, and tiny training runs on a skeleton of one joint.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from igavatar.artifacts.manifest import read_artifact
+from igavatar.body.rotations import axis_angle_to_matrix
+from igavatar.body.skeleton import forward_kinematics
+from igavatar.capture.visual_hull import MaskViews, hull_prior_mesh, search_box
+from igavatar.render.cameras import turntable_cameras
+from igavatar.synth.skeleton_capture import root_only_poses
+from igavatar_cli.main import app
+from stages.preprocess import PreprocessOptions, run_preprocess
+from stages.synth import SynthOptions, run_synth
+from stages.train import TrainOptions, run_train
+from test_visual_hull import BOX, CENTRES, FRONT, RADIUS, UP, sphere_masks, true_sdf
+
+
+def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
+    n_views, size = 24, 64
+    K, w2c = turntable_cameras(BOX[0], BOX[1], n_views, size, size, up=UP, front=FRONT, elevation=math.radians(5.0))
+    K = K.expand(n_views, 3, 3) if K.ndim == 2 else K
+    masks = sphere_masks(K, w2c, size)
+    views = MaskViews(masks=[m.numpy() for m in masks], K=K.numpy(), w2c=w2c.numpy(), frames=list(range(n_views)))
+    hull = hull_prior_mesh(BOX, lambda frame, x: x, views, cell_size=0.02, mask_dilation_px=1)
+    assert hull is not None and hull.views == n_views and not hull.touches_box
+    mesh = trimesh.Trimesh(hull.vertices.numpy(), hull.faces.numpy(), process=False)
+    assert mesh.is_watertight and mesh.volume > 0  # closed, normals outwards
+    # The largest part only: the two spheres are two parts, so the hull keeps one of them whole.
+    kept = [bool(mesh.contains(c[None].numpy())[0]) for c in CENTRES]
+    assert sum(kept) == 1
+    sphere_volume = 4.0 / 3.0 * math.pi * RADIUS**3
+    assert sphere_volume * 0.9 < mesh.volume < sphere_volume * 2.5
+    # Every point of the kept sphere's surface lies inside the hull or within a cell of it.
+    centre = CENTRES[kept.index(True)]
+    directions = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(0)), dim=1)
+    surface = (centre + RADIUS * directions).numpy()
+    outside = ~mesh.contains(surface)
+    distance = np.abs(trimesh.proximity.signed_distance(mesh, surface[outside])) if outside.any() else np.zeros(0)
+    assert (distance < 0.02).all()
+    gap = np.array([[0.0, 0.0, 0.0]])
+    assert not mesh.contains(gap)[0]
+
+
+def test_search_box_gives_a_lone_root_room_for_a_standing_person():
+    box = search_box(torch.tensor([[0.1, 0.2, 0.9]]))
+    assert torch.allclose(box[0], torch.tensor([0.1, 0.2, 0.9]) - 1.1) and torch.allclose(box[1], torch.tensor([0.1, 0.2, 0.9]) + 1.1)
+    joints = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 3.0]])  # taller than 2 x 1.1 m: the margin rules
+    box = search_box(joints)
+    assert float(box[0, 2]) == pytest.approx(-0.35) and float(box[1, 2]) == pytest.approx(3.35)
+
+
+def test_root_only_poses_reproduce_a_rigid_turn_and_refuse_motion():
+    rng = np.random.default_rng(0)
+    first = rng.normal(size=(200, 3)) * [0.3, 0.2, 0.8] + [0.0, 0.0, 1.0]
+    angles = np.linspace(0.0, 2.0 * np.pi, 7, endpoint=False)
+    frames = []
+    for k, angle in enumerate(angles):
+        rotation = axis_angle_to_matrix(torch.tensor([0.0, 0.0, angle])).numpy()
+        frames.append(first @ rotation.T + [0.05 * k, -0.02 * k, 0.0])
+    arrays = root_only_poses(np.stack(frames))
+    assert arrays["parents"].tolist() == [-1] and arrays["rotvecs"].shape == (7, 1, 3)
+    rest = torch.as_tensor(arrays["rest_joints"])
+    global_posed = forward_kinematics(axis_angle_to_matrix(torch.as_tensor(arrays["rotvecs"])), rest,
+                                      arrays["parents"], torch.as_tensor(arrays["transl"]))
+    for frame, transform in zip(frames, global_posed[:, 0]):
+        # bone transform = G_posed @ inverse(G_rest), G_rest = [I | rest joint]
+        moved = (torch.as_tensor(first) - rest) @ transform[:3, :3].T + transform[:3, 3]
+        assert np.abs(moved.numpy() - frame).max() < 1e-9
+    bent = np.stack(frames)
+    bent[3, :50] += 0.05  # part of the body moved: not a static subject
+    with pytest.raises(ValueError, match="frame 3 is not a rigid copy"):
+        root_only_poses(bent)
+
+
+def test_synth_root_refuses_novel_pose_frames(cli_runner, tmp_path):
+    result = cli_runner.invoke(app, ["synth", "--out", str(tmp_path / "c"), "--skeleton", "root", "--test-frames", "3"])
+    assert result.exit_code == 2
+    assert "static subject" in result.output and "--test-frames 0" in result.output and "Traceback" not in result.output
+
+
+@pytest.fixture(scope="module")
+def static_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("static")
+    run_synth(SynthOptions(out=run / "capture", resolution=96, train_frames=12, test_frames=0, holdout_frames=2,
+                           skeleton="root", seed=3))
+    run_preprocess(PreprocessOptions(capture=run / "capture", out=run / "dataset", max_size=96))
+    return run
+
+
+def test_static_capture_gets_a_hull_prior_that_holds_the_subject(static_run):
+    capture = read_artifact(static_run / "capture", expected="capture")["data"]
+    assert capture["body_model"] == "skeleton"
+    data = read_artifact(static_run / "dataset", expected="dataset")["data"]
+    assert data["shape_prior"] == "visual_hull" and data["joint_names"] == ["root"]
+    prior = trimesh.load(static_run / "dataset" / "template.ply", process=False)
+    truth = trimesh.load(static_run / "capture" / "scans" / "train_0000.ply", process=False)  # canonical = frame 0
+    assert prior.is_watertight
+    # The hull bounds the subject: nearly all of the true surface is inside it or within 2 cm
+    # (masks of 96 px are ~3 cm a pixel at 3 m), and it is not a box around the whole scene.
+    points = np.asarray(truth.vertices)[np.random.default_rng(0).choice(len(truth.vertices), 3000, replace=False)]
+    outside = ~prior.contains(points)
+    far = (np.abs(trimesh.proximity.signed_distance(prior, points[outside])) > 0.02).sum() if outside.any() else 0
+    assert far / len(points) < 0.01
+    assert truth.volume < prior.volume < 3.5 * truth.volume
+    canonical_box = np.asarray(data["canonical_box"])
+    assert (canonical_box[0] <= prior.bounds[0] + 1e-4).all() and (canonical_box[1] >= prior.bounds[1] - 1e-4).all()
+
+
+def test_tiny_training_on_a_single_joint(static_run):
+    run_train(TrainOptions(dataset=static_run / "dataset", out=static_run / "model", preset="tiny", steps=8, device="cpu"))
+    from stages.model_io import load_model
+
+    model = load_model(static_run / "model")
+    truth = trimesh.load(static_run / "capture" / "scans" / "train_0000.ply", process=False)
+    chest = torch.tensor(np.asarray(truth.vertices).mean(0)[None], dtype=torch.float32)
+    beside = chest + torch.tensor([[0.0, 0.0, 1.5]])  # above the head
+    with torch.no_grad():
+        sdf = model.avatar.sdf_field(torch.cat((chest, beside)))[0].reshape(-1)
+    assert float(sdf[0]) < 0 < float(sdf[1]), "the avatar of a lone root has no body inside its hull"
