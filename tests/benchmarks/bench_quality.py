@@ -63,6 +63,9 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-eq9-w0.01": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.01"],
     "smooth-released-w1": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "1"],
     "smooth-released-w10": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "10"],
+    "smooth-released-w0.1": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "0.1"],
+    "smooth-released-w100": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "100"],
+    "smooth-eq9-w1": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "1"],
     "smooth-hull": ["--regularizer", "smooth", "--free-space-weight", "1"],
 }
 METRICS: tuple[str, ...] = ("psnr_full_db", "psnr_mask_bbox_db", "ssim_full", "ssim_mask_bbox", "chamfer_l2_cm2",
