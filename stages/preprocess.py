@@ -60,6 +60,8 @@ BOX_MARGIN_M = 0.12
 MIN_HULL_VIEWS = 8
 #: At most this many training frames (evenly spaced) vote on the hull, which bounds time and memory.
 MAX_HULL_VIEWS = 64
+#: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept).
+HULL_PRIOR_VERSION = 2
 #: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
 HULL_BOX_SQUEEZE = 3.0
 #: Grid spacing (metres) of the hull prior.
@@ -195,6 +197,9 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
     masks_source = "given" if capture.has_masks else "estimated (grabcut)"
     config = options.config() | {"input_format": input_format}
+    if capture.body_model == "skeleton":
+        # The prior is computed here, not read: a change to how it is made must redo the dataset.
+        config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
     if not capture.has_masks:
         config["segmentation"] = {"method": "grabcut", "band_m": CLOTHING_BAND_M, "iterations": GRABCUT_ITERATIONS}
     inputs = _input_records(capture, options.smpl_model)

@@ -1,7 +1,7 @@
 """The masks' visual hull in canonical space: canonical points voted in or out of the training masks.
 
     views = MaskViews(masks, K, w2c, frames)                         # the training frames that vote
-    seen, inside = vote_masks(points_canonical, skin, views)          # (P,) int32 each
+    votes = vote_masks(points_canonical, skin, views)                 # seen, inside: (P,) int32 each
     prior = hull_prior_mesh(box, skin, views, cell_size=0.02)         # a closed mesh of the hull
 
 Forward skinning needs no root finding: `skin(frame, x_canonical)` pushes canonical points into a
@@ -68,6 +68,37 @@ def grid_spacing(box_min: torch.Tensor, box_max: torch.Tensor, shape: tuple[int,
     return [float(box_max[axis] - box_min[axis]) / (shape[2 - axis] - 1) for axis in (2, 1, 0)]
 
 
+@dataclass(frozen=True)
+class MaskVotes:
+    """Per canonical point: views that see it, views whose mask holds it, views that crush it.
+
+    Attributes:
+        seen: (P,) int32 views in which the point projects into the image in front of the camera.
+        inside: (P,) int32 views in which it falls inside the (dilated) mask.
+        collapsed: (P,) int32 views in which skinning shrinks the volume around the point below
+            `min_volume_ratio` (only for points on a grid; None otherwise).
+    """
+
+    seen: torch.Tensor
+    inside: torch.Tensor
+    collapsed: torch.Tensor | None
+
+
+def volume_ratio(x_world: torch.Tensor, shape: tuple[int, int, int], spacing: list[float]) -> torch.Tensor:
+    """det of the skinning map's Jacobian at every point of a canonical grid, by central differences.
+
+    Args:
+        x_world: (D*H*W, 3) where the grid's points land.
+        shape: (D, H, W) of the grid; spacing: metres along (D, H, W) as `grid_spacing`.
+    Returns:
+        (D*H*W,) posed volume / canonical volume (1 for a rigid motion, ~0 where space is crushed).
+    """
+    grid = x_world.reshape(*shape, 3).double()
+    # d x_world / d (z, y, x); the columns in (x, y, z) order make the determinant's sign that of the map.
+    dz, dy, dx = torch.gradient(grid, spacing=spacing, dim=(0, 1, 2))
+    return torch.linalg.det(torch.stack((dx, dy, dz), dim=-1)).reshape(-1)
+
+
 @torch.no_grad()
 def vote_masks(
     points_canonical: torch.Tensor,
@@ -75,7 +106,9 @@ def vote_masks(
     views: MaskViews,
     mask_dilation_px: int = 2,
     chunk_size: int = 262144,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    grid: tuple[tuple[int, int, int], list[float]] | None = None,
+    min_volume_ratio: float = 0.3,
+) -> MaskVotes:
     """Count, for every canonical point, the views that see it and those whose mask holds it.
 
     Args:
@@ -85,13 +118,14 @@ def vote_masks(
         mask_dilation_px: masks are dilated by this many pixels first, so that small errors of
             pose, camera or mask do not carve the subject.
         chunk_size: points skinned at once.
-    Returns:
-        seen (P,) int32: views in which the point projects into the image in front of the camera;
-        inside (P,) int32: views in which it falls inside the (dilated) mask.
+        grid: ((D, H, W), spacing) when the points are a `grid_points` grid: then also count the
+            views whose skinning crushes the space around each point (see `volume_ratio`).
+        min_volume_ratio: below this posed/canonical volume ratio a point counts as crushed.
     """
     kernel = np.ones((2 * mask_dilation_px + 1,) * 2, bool)
     seen = torch.zeros(points_canonical.shape[0], dtype=torch.int32)
     inside = torch.zeros(points_canonical.shape[0], dtype=torch.int32)
+    collapsed = torch.zeros(points_canonical.shape[0], dtype=torch.int32) if grid is not None else None
     for mask, K, w2c, frame in zip(views.masks, views.K, views.w2c, views.frames):
         mask = np.asarray(mask, bool)
         if mask_dilation_px > 0:
@@ -99,8 +133,11 @@ def vote_masks(
         height, width = mask.shape
         mask_t = torch.from_numpy(mask)
         K, w2c = torch.as_tensor(np.asarray(K), dtype=torch.float64), torch.as_tensor(np.asarray(w2c), dtype=torch.float64)
+        landed = []
         for start in range(0, points_canonical.shape[0], chunk_size):
             x_world = skin(int(frame), points_canonical[start : start + chunk_size]).double().cpu()
+            if grid is not None:
+                landed.append(x_world.float())
             x_camera = x_world @ w2c[:3, :3].T + w2c[:3, 3]
             depth = x_camera[:, 2]
             uv = (x_camera @ K.T)[:, :2] / depth.clamp_min(1e-6)[:, None]
@@ -110,7 +147,9 @@ def vote_masks(
             hit[visible] = mask_t[v[visible], u[visible]]
             seen[start : start + chunk_size] += visible.int()
             inside[start : start + chunk_size] += hit.int()
-    return seen, inside
+        if grid is not None:
+            collapsed += (volume_ratio(torch.cat(landed), *grid) < min_volume_ratio).int()
+    return MaskVotes(seen=seen, inside=inside, collapsed=collapsed)
 
 
 def free_points(seen: torch.Tensor, inside: torch.Tensor, min_outside_fraction: float = 0.1, min_outside: int = 2) -> torch.Tensor:
@@ -147,11 +186,18 @@ def hull_prior_mesh(
     mask_dilation_px: int = 2,
     min_outside_fraction: float = 0.1,
     min_seen_fraction: float = 0.5,
+    min_volume_ratio: float = 0.3,
+    max_collapsed_fraction: float = 0.5,
 ) -> HullPrior | None:
     """Mesh the visual hull's kept cells in a canonical search box; None if nothing is kept.
 
-    A grid point is kept when it is not free (see `free_points`) and at least `min_seen_fraction`
-    of the views see it (a point no camera sees is no evidence of the subject). Of the kept points
+    A grid point is kept when it is not free (see `free_points`), at least `min_seen_fraction`
+    of the views see it (a point no camera sees is no evidence of the subject), and skinning does
+    not crush the space around it in more than `max_collapsed_fraction` of the views. The last
+    rule removes ghost limbs: with the legs spread in canonical space and together in every
+    frame, blended weights fold the canonical gap between the legs onto the posed legs, inside
+    every mask, where no silhouette can carve it; there the posed volume shrinks towards zero,
+    while on the body LBS moves space almost rigidly (ratio ~1). Of the kept points
     the largest connected part is meshed, its inner cavities filled, after a slight blur so that
     the surface is not staircased at the grid's cells.
 
@@ -160,14 +206,17 @@ def hull_prior_mesh(
         skin, views, mask_dilation_px, min_outside_fraction: as `vote_masks` / `free_points`.
         cell_size: grid spacing in metres.
         min_seen_fraction: of the views, how many must see a point for it to count.
+        min_volume_ratio, max_collapsed_fraction: the crushed-space rule above.
     """
     from skimage.measure import marching_cubes
 
     box = torch.as_tensor(box).detach().float().cpu()
     points, shape = grid_points(box[0], box[1], cell_size)
-    seen, inside = vote_masks(points, skin, views, mask_dilation_px)
-    free = free_points(seen, inside, min_outside_fraction, min_outside=2)
-    kept = (~free & (seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))).reshape(shape).numpy()
+    spacing = grid_spacing(box[0], box[1], shape)
+    votes = vote_masks(points, skin, views, mask_dilation_px, grid=(shape, spacing), min_volume_ratio=min_volume_ratio)
+    free = free_points(votes.seen, votes.inside, min_outside_fraction, min_outside=2)
+    crushed = votes.collapsed > max_collapsed_fraction * len(views.frames)
+    kept = (~free & ~crushed & (votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))).reshape(shape).numpy()
     labels, count = ndimage.label(kept)
     if count == 0:
         return None
@@ -176,7 +225,6 @@ def hull_prior_mesh(
     touches = bool(kept[[0, -1]].any() or kept[:, [0, -1]].any() or kept[:, :, [0, -1]].any())
     # Zero padding closes the surface where the region touches the box; the blur rounds the cells.
     volume = ndimage.gaussian_filter(np.pad(kept.astype(np.float32), 1), sigma=0.7)
-    spacing = grid_spacing(box[0], box[1], shape)
     vertices_zyx, faces, _, _ = marching_cubes(volume, level=0.5, spacing=tuple(spacing))
     vertices = vertices_zyx[:, ::-1] - np.asarray(spacing[::-1]) + box[0].numpy()  # (z, y, x) -> (x, y, z), undo the pad
     faces = faces.astype(np.int64)

@@ -108,7 +108,8 @@ def canonical_visual_hull(
 
     views = MaskViews(masks=[data.masks[i].numpy() for i in frames], K=data.K[frames].numpy(),
                       w2c=data.w2c[frames].numpy(), frames=frames)
-    seen, inside = vote_masks(points, skin, views, mask_dilation_px, chunk_size)
+    votes = vote_masks(points, skin, views, mask_dilation_px, chunk_size)
+    seen, inside = votes.seen, votes.inside
     free = free_points(seen, inside, min_outside_fraction, min_outside).reshape(shape)
     # Distance from each free cell to the nearest kept one: the SDF there is at least this much
     # (the surface is inside the hull). Anisotropic spacing: the grid's cells need not be cubes.
