@@ -185,6 +185,9 @@ def preprocess(
             "needed by captures with SMPL poses; igavatar never ships or downloads it.",
         ),
     ] = None,
+    shape_prior: Annotated[str, typer.Option(
+        help="auto: the body model's template, or for a bare skeleton the masks' visual hull in canonical space; "
+             "visual-hull: the hull even with a template (it bounds clothes and hair; needs 8+ training frames).")] = "auto",
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
@@ -197,7 +200,7 @@ def preprocess(
     options = PreprocessOptions(
         capture=capture or layout.capture, out=out or layout.dataset, input_format=input_format,
         max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution), anny_cache=anny_cache,
-        smpl_model=smpl_model, force=force,
+        smpl_model=smpl_model, shape_prior=shape_prior, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_preprocess(options, progress=progress)

@@ -24,6 +24,7 @@ Dataset layout (schema `dataset`, version 1):
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 import json
 import time
 from dataclasses import dataclass
@@ -60,6 +61,10 @@ BOX_MARGIN_M = 0.12
 MIN_HULL_VIEWS = 8
 #: At most this many training frames (evenly spaced) vote on the hull, which bounds time and memory.
 MAX_HULL_VIEWS = 64
+#: --shape-prior: auto = the body model's template, else the masks' visual hull (else capsules);
+#: visual-hull = the hull even when there is a template (it bounds clothes and hair, which the
+#: naked template does not), with the template's skinning weights.
+SHAPE_PRIORS = ("auto", "visual-hull")
 #: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept).
 HULL_PRIOR_VERSION = 2
 #: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
@@ -80,6 +85,7 @@ class PreprocessOptions:
     grid_resolution: tuple[int, int, int] = (64, 16, 64)
     anny_cache: Path | None = None
     smpl_model: Path | None = None
+    shape_prior: str = "auto"
     force: bool = False
 
     def config(self) -> dict:
@@ -87,6 +93,8 @@ class PreprocessOptions:
         return {
             "input_format": self.input_format, "max_size": self.max_size,
             "grid_resolution": list(self.grid_resolution), "box_margin_m": BOX_MARGIN_M,
+            # Only when not the default, so that datasets made before the option keep their config.
+            **({"shape_prior": self.shape_prior} if self.shape_prior != "auto" else {}),
         }
 
 
@@ -150,23 +158,24 @@ def _segmentation_body(subject: PosedSubject, canonical: CanonicalSubject, index
 
 
 def _hull_prior(
-    subject: PosedSubject,
     canonical: CanonicalSubject,
     views: list[int],
     masks: dict[int, np.ndarray],
     K: np.ndarray,
     w2c: np.ndarray,
-    grid_resolution: tuple[int, int, int],
+    weights_grid: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
 ) -> tuple | None:
-    """A bare skeleton's shape prior from the masks: (vertices, faces, "visual_hull", grid box min,
+    """The masks' visual hull as the shape prior: (vertices, faces, "visual_hull", grid box min,
     max, skinning grid, padded posed boxes), or None when the masks keep nothing.
 
-    The bones' weights skin a generous search box (igavatar.capture.visual_hull.search_box) into
-    the voting frames; the kept cells' mesh then sizes the final boxes and weight grid, and its
-    vertices skinned into every frame give the posed boxes.
+    `weights_grid(box_min, box_max)` gives the (J, D, H, W) skinning weights over a box (the
+    template's, or the bones'). They skin a generous search box
+    (igavatar.capture.visual_hull.search_box) into the voting frames; the kept cells' mesh then
+    sizes the final boxes and weight grid, and its vertices skinned into every frame give the
+    posed boxes.
     """
     lo, hi = search_box(canonical.canonical_joints)
-    search_grid = build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, lo, hi, grid_resolution)
+    search_grid = weights_grid(lo, hi)
     skin = grid_skin(search_grid, lo, hi, canonical.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
     hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M)
@@ -175,7 +184,7 @@ def _hull_prior(
     vertices = hull.vertices
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE)
-    grid = build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, grid_resolution)
+    grid = weights_grid(box_min, box_max)
     skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
     posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
     posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])
@@ -197,7 +206,9 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
     masks_source = "given" if capture.has_masks else "estimated (grabcut)"
     config = options.config() | {"input_format": input_format}
-    if capture.body_model == "skeleton":
+    if options.shape_prior not in SHAPE_PRIORS:
+        raise InputError(f"--shape-prior {options.shape_prior!r}: choose one of {', '.join(SHAPE_PRIORS)}")
+    if capture.body_model == "skeleton" or options.shape_prior == "visual-hull":
         # The prior is computed here, not read: a change to how it is made must redo the dataset.
         config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
     if not capture.has_masks:
@@ -233,8 +244,14 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     # A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
     # the masks' visual hull replaces them once the masks are read (below).
     train_frames = [i for i, name in enumerate(capture.frames) if name in set(capture.splits["train"])]
-    hull_views = spread_views(train_frames, MAX_HULL_VIEWS) if canonical.template_vertices is None else []
+    use_hull = canonical.template_vertices is None or options.shape_prior == "visual-hull"
+    hull_views = spread_views(train_frames, MAX_HULL_VIEWS) if use_hull else []
     if len(hull_views) < MIN_HULL_VIEWS:
+        if options.shape_prior == "visual-hull":
+            raise InputError(
+                f"--shape-prior visual-hull: the capture has {len(train_frames)} training frames, and the hull needs at "
+                f"least {MIN_HULL_VIEWS} views to vote; leave --shape-prior at auto (the body model's template)"
+            )
         hull_views = []
     hull_masks: dict[int, np.ndarray] = {}
     canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)
@@ -290,7 +307,15 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
 
         if hull_views:
             tick = time.perf_counter()
-            hull = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution)
+            if canonical.template_vertices is not None:
+                template_v, template_w = canonical.template_vertices, subject.template_weights
+
+                def weights_grid(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+                    return build_skinning_grid(template_v, template_w, lo, hi, options.grid_resolution)
+            else:
+                def weights_grid(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+                    return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, lo, hi, options.grid_resolution)
+            hull = _hull_prior(canonical, hull_views, hull_masks, K, capture.w2c, weights_grid)
             if hull is not None:
                 body_points, prior_faces, shape_prior, box_min, box_max, skinning_grid, posed_boxes = hull
                 canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)

@@ -168,3 +168,14 @@ def test_bare_skeleton_capture_gets_a_hull_prior_around_its_posed_truth(tmp_path
         inside_or_near[~inside_or_near] = near
     # Skinning errors of bone weights at 96 px: most, not all, of the truth is within 3 cm.
     assert inside_or_near.mean() > 0.95
+
+
+def test_shape_prior_option_is_checked(cli_runner, small_run, tmp_path):
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(small_run / "capture"), "--out", str(tmp_path / "d"),
+                                     "--shape-prior", "hull"])
+    assert result.exit_code == 2 and "--shape-prior 'hull'" in result.output and "visual-hull" in result.output
+    # small_run has 4 training frames: too few views for a hull, and the user asked for one.
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(small_run / "capture"), "--out", str(tmp_path / "d"),
+                                     "--shape-prior", "visual-hull"])
+    assert result.exit_code == 2 and "4 training frames" in result.output and "at least 8" in result.output
+    assert not (tmp_path / "d").exists()

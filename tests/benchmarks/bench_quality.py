@@ -49,7 +49,11 @@ SUBJECTS: dict[str, list[str]] = {
 EXTRA_SUBJECTS: dict[str, list[str]] = {
     **{f"{name}-bare": [*args, "--skeleton", "bare"] for name, args in SUBJECTS.items()},
     "static-root": ["--seed", "3", "--skeleton", "root", "--test-frames", "0", "--texture", "checker"],
+    **{f"{name}-hull": args for name, args in SUBJECTS.items()},
 }
+#: Preprocess options of a subject (default: none): the `*-hull` subjects take the masks' visual
+#: hull as the shape prior instead of the naked template.
+PREPROCESS_ARGS: dict[str, list[str]] = {f"{name}-hull": ["--shape-prior", "visual-hull"] for name in SUBJECTS}
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
 SMOOTH_VARIANTS: dict[str, list[str]] = {
@@ -168,7 +172,7 @@ def run_subject(name: str, synth_args: list[str], args: argparse.Namespace) -> d
     run = args.run_dir / name
     igavatar("synth", "--run-dir", str(run), "--resolution", str(args.resolution), "--train-frames", str(args.train_frames),
              "--test-frames", str(args.test_frames), "--holdout-frames", str(args.holdout_frames), *synth_args)
-    igavatar("preprocess", "--run-dir", str(run))
+    igavatar("preprocess", "--run-dir", str(run), *PREPROCESS_ARGS.get(name, []))
     frames = read_json(run / "dataset" / "manifest.json")["data"]["splits"]["test"]
     groups = {
         "in-distribution": [f for f in frames if f.startswith("test_holdout_")],
