@@ -24,7 +24,6 @@ Dataset layout (schema `dataset`, version 1):
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 import json
 import time
 from dataclasses import dataclass
@@ -157,26 +156,78 @@ def _segmentation_body(subject: PosedSubject, canonical: CanonicalSubject, index
     return PosedBody(joints=canonical.posed_joints[index].double().numpy(), parents=subject.skeleton.parents)
 
 
+@dataclass(frozen=True)
+class ShapePrior:
+    """The canonical shape prior and what is sized from it (float32 / int64 CPU tensors).
+
+    Attributes:
+        vertices, faces: (V, 3), (F, 3) the prior mesh written as template.ply.
+        kind: "template" | "visual_hull" | "capsules" (manifest data "shape_prior").
+        box_min, box_max: (3,) the skinning grid's box.
+        skinning_grid: (J, D, H, W) weights over that box.
+        posed_boxes: (N, 2, 3) world boxes of the prior in every frame, padded by BOX_MARGIN_M.
+    """
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    kind: str
+    box_min: torch.Tensor
+    box_max: torch.Tensor
+    skinning_grid: torch.Tensor
+    posed_boxes: torch.Tensor
+
+    def canonical_box(self) -> torch.Tensor:
+        """(2, 3) the SDF's box: the prior plus BOX_MARGIN_M, inside the skinning grid's box."""
+        lo = torch.maximum(self.vertices.amin(0) - BOX_MARGIN_M, self.box_min)
+        hi = torch.minimum(self.vertices.amax(0) + BOX_MARGIN_M, self.box_max)
+        return torch.stack((lo, hi))
+
+
+def _padded(boxes: torch.Tensor) -> torch.Tensor:
+    """(N, 2, 3) boxes grown by BOX_MARGIN_M on every side (a new tensor)."""
+    return torch.stack((boxes[:, 0] - BOX_MARGIN_M, boxes[:, 1] + BOX_MARGIN_M), dim=1)
+
+
+def _weights_grid(subject: PosedSubject, canonical: CanonicalSubject, box_min: torch.Tensor, box_max: torch.Tensor,
+                  resolution: tuple[int, int, int]) -> torch.Tensor:
+    """(J, D, H, W) skinning weights over a box: the template's, or for a bare skeleton the bones'."""
+    if canonical.template_vertices is not None:
+        return build_skinning_grid(canonical.template_vertices, subject.template_weights, box_min, box_max, resolution)
+    return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, resolution)
+
+
+def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int]) -> ShapePrior:
+    """The body model's template, or for a bare skeleton capsules around its bones."""
+    if canonical.template_vertices is not None:
+        vertices, faces, kind = canonical.template_vertices, subject.template_faces, "template"
+        posed_boxes = canonical.posed_template_boxes
+    else:
+        capsules = capsule_prior(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms)
+        vertices, faces, kind = capsules.vertices, capsules.faces, "capsules"
+        posed_boxes = capsules.posed_boxes  # joints alone miss the crown, hands and feet
+    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices))
+    return ShapePrior(vertices, faces, kind, box_min, box_max, _weights_grid(subject, canonical, box_min, box_max, resolution),
+                      _padded(posed_boxes))
+
+
 def _hull_prior(
+    subject: PosedSubject,
     canonical: CanonicalSubject,
     views: list[int],
     masks: dict[int, np.ndarray],
     K: np.ndarray,
     w2c: np.ndarray,
-    weights_grid: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-) -> tuple | None:
-    """The masks' visual hull as the shape prior: (vertices, faces, "visual_hull", grid box min,
-    max, skinning grid, padded posed boxes), or None when the masks keep nothing.
+    resolution: tuple[int, int, int],
+) -> ShapePrior | None:
+    """The masks' visual hull as the shape prior, or None when the masks keep nothing.
 
-    `weights_grid(box_min, box_max)` gives the (J, D, H, W) skinning weights over a box (the
-    template's, or the bones'). They skin a generous search box
+    The skinning weights (the template's, or the bones') skin a generous search box
     (igavatar.capture.visual_hull.search_box) into the voting frames; the kept cells' mesh then
     sizes the final boxes and weight grid, and its vertices skinned into every frame give the
     posed boxes.
     """
     lo, hi = search_box(canonical.canonical_joints)
-    search_grid = weights_grid(lo, hi)
-    skin = grid_skin(search_grid, lo, hi, canonical.bone_transforms)
+    skin = grid_skin(_weights_grid(subject, canonical, lo, hi, resolution), lo, hi, canonical.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
     hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M)
     if hull is None:
@@ -184,13 +235,11 @@ def _hull_prior(
     vertices = hull.vertices
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE)
-    grid = weights_grid(box_min, box_max)
+    grid = _weights_grid(subject, canonical, box_min, box_max, resolution)
     skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
     posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
     posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])
-    posed_boxes[:, 0] -= BOX_MARGIN_M
-    posed_boxes[:, 1] += BOX_MARGIN_M
-    return vertices, hull.faces, "visual_hull", box_min, box_max, grid, posed_boxes
+    return ShapePrior(vertices, hull.faces, "visual_hull", box_min, box_max, grid, _padded(posed_boxes))
 
 
 def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
@@ -226,24 +275,10 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     canonical = canonicalize(subject)
     timings["body_model_s"] = time.perf_counter() - tick
 
-    tick = time.perf_counter()
-    posed_boxes = canonical.posed_template_boxes.clone()
-    if canonical.template_vertices is not None:
-        template = canonical.template_vertices
-        box_min, box_max = canonical_grid_box(template, squeeze_axis=_squeeze_axis(template))
-        skinning_grid = build_skinning_grid(template, subject.template_weights, box_min, box_max, options.grid_resolution)
-        body_points, prior_faces, shape_prior = template, subject.template_faces, "template"
-    else:  # a bare skeleton: capsules around the bones are the shape, the bones give the weights
-        prior = capsule_prior(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms)
-        box_min, box_max = canonical_grid_box(prior.vertices, squeeze_axis=_squeeze_axis(prior.vertices))
-        skinning_grid = build_bone_skinning_grid(
-            canonical.canonical_joints, subject.skeleton, box_min, box_max, options.grid_resolution
-        )
-        body_points, prior_faces, shape_prior = prior.vertices, prior.faces, "capsules"
-        posed_boxes = prior.posed_boxes.clone()  # joints alone miss the crown, hands and feet
     # A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
-    # the masks' visual hull replaces them once the masks are read (below).
-    train_frames = [i for i, name in enumerate(capture.frames) if name in set(capture.splits["train"])]
+    # its prior is the masks' visual hull, made once the masks are read (below).
+    train_names = set(capture.splits["train"])
+    train_frames = [i for i, name in enumerate(capture.frames) if name in train_names]
     use_hull = canonical.template_vertices is None or options.shape_prior == "visual-hull"
     hull_views = spread_views(train_frames, MAX_HULL_VIEWS) if use_hull else []
     if len(hull_views) < MIN_HULL_VIEWS:
@@ -253,15 +288,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                 f"least {MIN_HULL_VIEWS} views to vote; leave --shape-prior at auto (the body model's template)"
             )
         hull_views = []
+    hull_view_set = set(hull_views)
     hull_masks: dict[int, np.ndarray] = {}
-    canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)
-    canonical_hi = torch.minimum(body_points.amax(0) + BOX_MARGIN_M, box_max)
-    timings["skinning_grid_s"] = time.perf_counter() - tick
 
     scale_xy, size_hw = resize_plan(capture.height, capture.width, options.max_size)
     K = scale_intrinsics(capture.K, scale_xy)
-    posed_boxes[:, 0] -= BOX_MARGIN_M
-    posed_boxes[:, 1] += BOX_MARGIN_M
     frame_index = {name: i for i, name in enumerate(capture.frames)}
     sheet_frames = set(np.linspace(0, len(capture.frames) - 1, min(CONTACT_SHEET_FRAMES, len(capture.frames))).round().astype(int))
     sheet_items = []
@@ -295,7 +326,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                         "give a mask with the subject in white (255), drop the frame from capture.json, "
                         "or remove masks/ to have them estimated"
                     )
-                if i in hull_views:
+                if i in hull_view_set:
                     hull_masks[i] = mask
                 cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
@@ -305,22 +336,12 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                 advance(1)
         timings["frames_s"] = time.perf_counter() - tick
 
-        if hull_views:
-            tick = time.perf_counter()
-            if canonical.template_vertices is not None:
-                template_v, template_w = canonical.template_vertices, subject.template_weights
-
-                def weights_grid(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-                    return build_skinning_grid(template_v, template_w, lo, hi, options.grid_resolution)
-            else:
-                def weights_grid(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-                    return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, lo, hi, options.grid_resolution)
-            hull = _hull_prior(canonical, hull_views, hull_masks, K, capture.w2c, weights_grid)
-            if hull is not None:
-                body_points, prior_faces, shape_prior, box_min, box_max, skinning_grid, posed_boxes = hull
-                canonical_lo = torch.maximum(body_points.amin(0) - BOX_MARGIN_M, box_min)
-                canonical_hi = torch.minimum(body_points.amax(0) + BOX_MARGIN_M, box_max)
-            timings["visual_hull_s"] = time.perf_counter() - tick
+        tick = time.perf_counter()
+        prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution) if hull_views else None
+        if prior is None:
+            prior = _body_prior(subject, canonical, options.grid_resolution)
+        canonical_box = prior.canonical_box()
+        timings["skinning_grid_s"] = time.perf_counter() - tick
 
         sheet = contact_sheet(sheet_items, subject.skeleton.parents)
         cv2.imwrite(str(tmp / "contact_sheet.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
@@ -332,7 +353,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             K=K.astype(np.float32), w2c=capture.w2c.astype(np.float32),
             bone_transforms=canonical.bone_transforms.numpy().astype(np.float32),
             pose_condition=canonical.pose_condition.numpy().astype(np.float32),
-            posed_boxes=posed_boxes.numpy().astype(np.float32),
+            posed_boxes=prior.posed_boxes.numpy().astype(np.float32),
             posed_joints=canonical.posed_joints.numpy().astype(np.float32),
             is_train=np.isin(capture.frames, splits["train"]),
             is_test=np.isin(capture.frames, splits.get("test", [])),
@@ -345,11 +366,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             canonical_rotations=subject.canonical_rotations.numpy().astype(np.float32),
             joint_names=np.array(subject.skeleton.joint_names, dtype=np.str_),
             init_bones=np.array(subject.init_bones, dtype=np.int64),
-            skinning_grid=skinning_grid.numpy().astype(np.float32),
-            grid_box_min=box_min.numpy().astype(np.float32), grid_box_max=box_max.numpy().astype(np.float32),
-            canonical_box=torch.stack((canonical_lo, canonical_hi)).numpy().astype(np.float32),
+            skinning_grid=prior.skinning_grid.numpy().astype(np.float32),
+            grid_box_min=prior.box_min.numpy().astype(np.float32), grid_box_max=prior.box_max.numpy().astype(np.float32),
+            canonical_box=canonical_box.numpy().astype(np.float32),
         )
-        trimesh.Trimesh(body_points.numpy(), prior_faces.numpy(), process=False).export(tmp / "template.ply")
+        trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / "template.ply")
         data = {
             "source_format": input_format,
             "body_model": subject.body_model,
@@ -361,11 +382,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             "pose_dim": int(canonical.pose_condition.shape[1]),
             "skinning_grid": {
                 "resolution": list(options.grid_resolution),
-                "box_min": box_min.tolist(), "box_max": box_max.tolist(),
+                "box_min": prior.box_min.tolist(), "box_max": prior.box_max.tolist(),
             },
-            "canonical_box": [canonical_lo.tolist(), canonical_hi.tolist()],
+            "canonical_box": canonical_box.tolist(),
             "has_template": True,
-            "shape_prior": shape_prior,
+            "shape_prior": prior.kind,
             "has_scans": bool(capture.scans),
             "masks": masks_source,
             "subject": json.loads(json.dumps(subject.description)),

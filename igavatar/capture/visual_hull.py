@@ -225,13 +225,11 @@ def hull_prior_mesh(
     touches = bool(kept[[0, -1]].any() or kept[:, [0, -1]].any() or kept[:, :, [0, -1]].any())
     # Zero padding closes the surface where the region touches the box; the blur rounds the cells.
     volume = ndimage.gaussian_filter(np.pad(kept.astype(np.float32), 1), sigma=0.7)
-    vertices_zyx, faces, _, _ = marching_cubes(volume, level=0.5, spacing=tuple(spacing))
+    # Outward normals: the volume is high inside, which flips skimage's winding ('ascent'), and
+    # reading its (z, y, x) axes as (x, y, z) below is a mirror, which flips it back: 'descent'.
+    vertices_zyx, faces, _, _ = marching_cubes(volume, level=0.5, spacing=tuple(spacing), gradient_direction="descent")
     vertices = vertices_zyx[:, ::-1] - np.asarray(spacing[::-1]) + box[0].numpy()  # (z, y, x) -> (x, y, z), undo the pad
     faces = faces.astype(np.int64)
-    # skimage's winding depends on the gradient's sign; make the normals point out of the hull.
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    if float(np.einsum("ij,ij->", a, np.cross(b - a, c - a))) < 0:
-        faces = faces[:, ::-1].copy()
     return HullPrior(
         vertices=torch.from_numpy(np.ascontiguousarray(vertices, np.float32)), faces=torch.from_numpy(faces),
         cell_size=float(cell_size), views=len(views.frames), touches_box=touches,
