@@ -176,6 +176,9 @@ def preprocess(
     grid_resolution: Annotated[
         str, typer.Option(help="Skinning-weight grid D,H,W (z,y,x) in canonical space.")
     ] = "64,16,64",
+    weight_smoothing: Annotated[Optional[int], typer.Option(
+        help="Blur passes over the skinning-weight grid [default: 30 for a body model's template, 2 for a bare "
+             "skeleton's bone weights]; fewer keeps the weights sharp where limbs meet.", min=0)] = None,
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory [default: ~/.cache/anny].")] = None,
     smpl_model: Annotated[
         Optional[Path],
@@ -199,7 +202,8 @@ def preprocess(
     layout = RunLayout(run_dir)
     options = PreprocessOptions(
         capture=capture or layout.capture, out=out or layout.dataset, input_format=input_format,
-        max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution), anny_cache=anny_cache,
+        max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution),
+        weight_smoothing=weight_smoothing, anny_cache=anny_cache,
         smpl_model=smpl_model, shape_prior=shape_prior, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:

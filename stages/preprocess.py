@@ -48,7 +48,7 @@ from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicaliz
 from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import ArtifactError, InputError
-from igavatar.skinning.bone_weights import build_bone_skinning_grid
+from igavatar.skinning.bone_weights import BoneWeightConfig, build_bone_skinning_grid
 from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
@@ -70,6 +70,9 @@ HULL_PRIOR_VERSION = 2
 HULL_BOX_SQUEEZE = 3.0
 #: Grid spacing (metres) of the hull prior.
 HULL_CELL_M = 0.02
+#: Blur passes over a template's skinning-weight grid (InstantAvatar's recipe), unless
+#: --weight-smoothing says otherwise.
+TEMPLATE_WEIGHT_SMOOTHING = 30
 CONTACT_SHEET_FRAMES = 12
 
 
@@ -82,6 +85,7 @@ class PreprocessOptions:
     input_format: str = "auto"
     max_size: int = 512
     grid_resolution: tuple[int, int, int] = (64, 16, 64)
+    weight_smoothing: int | None = None
     anny_cache: Path | None = None
     smpl_model: Path | None = None
     shape_prior: str = "auto"
@@ -94,6 +98,7 @@ class PreprocessOptions:
             "grid_resolution": list(self.grid_resolution), "box_margin_m": BOX_MARGIN_M,
             # Only when not the default, so that datasets made before the option keep their config.
             **({"shape_prior": self.shape_prior} if self.shape_prior != "auto" else {}),
+            **({"weight_smoothing": self.weight_smoothing} if self.weight_smoothing is not None else {}),
         }
 
 
@@ -189,14 +194,22 @@ def _padded(boxes: torch.Tensor) -> torch.Tensor:
 
 
 def _weights_grid(subject: PosedSubject, canonical: CanonicalSubject, box_min: torch.Tensor, box_max: torch.Tensor,
-                  resolution: tuple[int, int, int]) -> torch.Tensor:
-    """(J, D, H, W) skinning weights over a box: the template's, or for a bare skeleton the bones'."""
+                  resolution: tuple[int, int, int], smoothing: int | None = None) -> torch.Tensor:
+    """(J, D, H, W) skinning weights over a box: the template's, or for a bare skeleton the bones'.
+
+    `smoothing` is the number of blur passes; None keeps each source's default
+    (TEMPLATE_WEIGHT_SMOOTHING for a template, BoneWeightConfig's for bones).
+    """
     if canonical.template_vertices is not None:
-        return build_skinning_grid(canonical.template_vertices, subject.template_weights, box_min, box_max, resolution)
-    return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, resolution)
+        passes = TEMPLATE_WEIGHT_SMOOTHING if smoothing is None else smoothing
+        return build_skinning_grid(canonical.template_vertices, subject.template_weights, box_min, box_max, resolution,
+                                   smoothing_iterations=passes)
+    config = BoneWeightConfig() if smoothing is None else BoneWeightConfig(smoothing_iterations=smoothing)
+    return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, resolution, config)
 
 
-def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int]) -> ShapePrior:
+def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int],
+                smoothing: int | None) -> ShapePrior:
     """The body model's template, or for a bare skeleton capsules around its bones."""
     if canonical.template_vertices is not None:
         vertices, faces, kind = canonical.template_vertices, subject.template_faces, "template"
@@ -206,8 +219,7 @@ def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: 
         vertices, faces, kind = capsules.vertices, capsules.faces, "capsules"
         posed_boxes = capsules.posed_boxes  # joints alone miss the crown, hands and feet
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices))
-    return ShapePrior(vertices, faces, kind, box_min, box_max, _weights_grid(subject, canonical, box_min, box_max, resolution),
-                      _padded(posed_boxes))
+    return ShapePrior(vertices, faces, kind, box_min, box_max, _weights_grid(subject, canonical, box_min, box_max, resolution, smoothing), _padded(posed_boxes))
 
 
 def _hull_prior(
@@ -218,6 +230,7 @@ def _hull_prior(
     K: np.ndarray,
     w2c: np.ndarray,
     resolution: tuple[int, int, int],
+    smoothing: int | None,
 ) -> ShapePrior | None:
     """The masks' visual hull as the shape prior, or None when the masks keep nothing.
 
@@ -227,7 +240,7 @@ def _hull_prior(
     posed boxes.
     """
     lo, hi = search_box(canonical.canonical_joints)
-    skin = grid_skin(_weights_grid(subject, canonical, lo, hi, resolution), lo, hi, canonical.bone_transforms)
+    skin = grid_skin(_weights_grid(subject, canonical, lo, hi, resolution, smoothing), lo, hi, canonical.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
     hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M)
     if hull is None:
@@ -235,7 +248,7 @@ def _hull_prior(
     vertices = hull.vertices
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE)
-    grid = _weights_grid(subject, canonical, box_min, box_max, resolution)
+    grid = _weights_grid(subject, canonical, box_min, box_max, resolution, smoothing)
     skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
     posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
     posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])
@@ -337,9 +350,10 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
         timings["frames_s"] = time.perf_counter() - tick
 
         tick = time.perf_counter()
-        prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution) if hull_views else None
+        prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution,
+                             options.weight_smoothing) if hull_views else None
         if prior is None:
-            prior = _body_prior(subject, canonical, options.grid_resolution)
+            prior = _body_prior(subject, canonical, options.grid_resolution, options.weight_smoothing)
         canonical_box = prior.canonical_box()
         timings["skinning_grid_s"] = time.perf_counter() - tick
 
