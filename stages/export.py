@@ -46,8 +46,9 @@ exported meshes (Embree), so they match the files exactly.
 
 from __future__ import annotations
 
-import math
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,49 +58,42 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.manifest import InputRecord, build_manifest, read_manifest
 from igavatar.artifacts.targets import check_output_target
-from igavatar.artifacts.manifest import (
-    MANIFEST_NAME,
-    InputRecord,
-    build_manifest,
-    read_artifact,
-    read_manifest,
-    sha256_json,
+from igavatar.avatar.glb import write_model_glb
+from igavatar.avatar.model import ModelArtifact, load_model
+from igavatar.avatar.poses import PoseSequence, read_poses
+from igavatar.avatar.surfaces import (
+    COARSE_RESOLUTION,
+    canonical_surface,
+    posed_surface,
+    posed_vertex_colors,
+    surface_colors,
+    vertex_colors,
+    vertex_skin_weights,
 )
-from igavatar.body.motions import body_to_world
-from igavatar.body.skeleton import Skeleton
-from igavatar.errors import ArtifactError, InputError
-from igavatar.mesh.cleanup import clean_mesh, is_watertight, vertex_normals
+from igavatar.errors import InputError
+from igavatar.mesh.cleanup import clean_mesh, is_watertight
 from igavatar.mesh.exr import write_exr
-from igavatar.mesh.extract import extract_mesh
-from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes, srgb_to_linear
+from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes
+from igavatar.mesh.maps import CAMERA_FOV_DEG, frontal_camera, mesh_maps
 from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm, sparse_weight_sets
-from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.mesh.posing import pose_canonical_vertices, surface_colors, vertex_colors, vertex_skin_weights
 from igavatar.mesh.texture import png_bytes
 from igavatar.mesh.textured_mesh import TexturedMesh, textured_mesh, textured_obj
-from igavatar.model.avatar import Avatar
-from igavatar.model.deformer import PreparedFrame
-from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values
-from stages.glb_writer import write_model_glb
-from stages.kernels import build_kernels
-from stages.model_io import LoadedModel, load_model
+from igavatar.model.posed import PosedAvatar
+from stages.common import StageClock, skipped, unchanged
+from stages.kernels import build_kernels, resolve_device
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import IMAGE_BYTES_PER_PIXEL, peak_cuda_bytes, peak_ram_bytes, require_marching_memory, require_memory
-from stages.train import resolve_device
 
 FORMATS = ("ply", "obj", "glb")
 DEFAULT_RESOLUTION = 512
 """Marching-cubes samples on the longest axis of the surface box: the paper's 512, on GPU and CPU
 alike: the narrow band makes it cheap, 20-45 s on two shared CPU cores for a `cpu`-preset network,
 cleanup and writing included (measured; 256 takes about 12 s)."""
-COARSE_RESOLUTION = 64
-CAMERA_FOV_DEG = 30.0
-DEFAULT_FPS = 30.0
 DEFAULT_TEXTURED_FACES = 30_000
 """Face budget of the textured mesh: a game-ready avatar (20-50k faces is the usual range)."""
-_NO_ROOT_SDF = 1.0  # metres: "far outside" for posed points with no canonical correspondence
-_BOX_PAD = 0.02  # of the canonical box's longest side, so the box's cap lies inside the grid
+_BOX_PAD = 0.02  # of the canonical box's longest side (igavatar.avatar.surfaces marches that much beyond it)
 
 
 @dataclass(frozen=True)
@@ -138,26 +132,6 @@ class ExportOptions:
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
         }
-
-
-@dataclass(frozen=True)
-class ExportPoses:
-    """The frames to export, as local rotations of the model's skeleton.
-
-    Attributes:
-        names: N frame names (file names under posed/).
-        local_rotations: (N, J, 3, 3) relative to the rest pose; root_translation: (N, 3) world.
-        fps: playback rate of the GLB animation.
-        description: JSON-able facts for the manifest (source, format, skeleton, frames).
-        inputs: the files/artifacts read, for the manifest.
-    """
-
-    names: list[str]
-    local_rotations: torch.Tensor
-    root_translation: torch.Tensor
-    fps: float
-    description: dict
-    inputs: list[InputRecord]
 
 
 def parse_formats(text: str) -> tuple[str, ...]:
@@ -214,176 +188,23 @@ def _check_options(options: ExportOptions) -> None:
 # Pose sources
 
 
-def _model_skeleton(model: LoadedModel) -> Skeleton:
-    return Skeleton(model.subject["parents"], model.subject["rest_joints"], model.joint_names)
-
-
-def _selection(options: ExportOptions, n_frames: int, source: Path) -> list[int]:
-    if options.all_frames:
-        return list(range(n_frames))
-    frame = 0 if options.frame is None else options.frame
-    if frame >= n_frames:
-        raise InputError(f"--frame {frame}: {source} has {n_frames} frames (0..{n_frames - 1})")
-    return [frame]
-
-
-def _dataset_poses(options: ExportOptions, model: LoadedModel) -> ExportPoses:
-    """Frames of a dataset artifact: its bone transforms turned back into local rotations."""
-    dataset = Path(options.pose)
-    read_artifact(dataset, expected="dataset")
-    with np.load(dataset / "frames.npz") as stored:
-        frames = {key: stored[key] for key in ("frame_names", "bone_transforms")}
-    with np.load(dataset / "subject.npz") as stored:
-        subject = {key: stored[key] for key in ("joint_names", "parents", "rest_joints", "canonical_rotations")}
-    names = [str(n) for n in frames["frame_names"]]
-    dataset_joints = [str(n) for n in subject["joint_names"]]
-    if dataset_joints != model.joint_names or not np.array_equal(subject["parents"], model.subject["parents"]):
-        raise InputError(
-            f"{dataset}: its skeleton ({len(dataset_joints)} joints) is not the model's "
-            f"({len(model.joint_names)} joints, {model.manifest['data']['body_model']}); retargeting is not available"
-        )
-    chosen = _selection(options, len(names), dataset / "frames.npz")
-    rotations, translation = local_pose_from_bone_transforms(
-        torch.from_numpy(frames["bone_transforms"][chosen]).double(), subject["parents"],
-        torch.from_numpy(subject["rest_joints"]).double(), torch.from_numpy(subject["canonical_rotations"]).double(),
-    )
-    return ExportPoses(
-        names=[names[i] for i in chosen], local_rotations=rotations.float(), root_translation=translation.float(),
-        fps=DEFAULT_FPS,
-        description={"source": str(dataset), "format": "dataset", "skeleton": model.manifest["data"]["body_model"],
-                     "source_frames": len(names), "frame_indices": chosen},
-        inputs=[InputRecord(dataset, "dataset")],
-    )
-
-
-def _sequence_poses(options: ExportOptions, model: LoadedModel, progress: ProgressSink) -> ExportPoses:
-    """Frames of a pose file or capture directory, converted to the model's skeleton."""
-    path = Path(options.pose)
-    if path.is_dir() and (path / MANIFEST_NAME).is_file():
-        read_artifact(path, expected="capture")  # an intact capture artifact, before reading it
-    sequence = read_pose_sequence(path)
-    chosen = _selection(options, sequence.n_frames, sequence.source)
-    selected = sequence.select(chosen)
-    data = model.manifest["data"]
-    phenotype = data.get("subject", {}).get("phenotype")
-    rotations, translation = sequence_local_pose(
-        selected, _model_skeleton(model), data["body_model"], phenotype=phenotype,
-        anny_cache=options.anny_cache, on_status=progress.status,
-    )
-    description = {"source": str(path), "format": sequence.format, "skeleton": sequence.skeleton_kind,
-                   "source_frames": sequence.n_frames, "frame_indices": chosen}
-    if sequence.phenotype is not None and phenotype is not None:
-        description["phenotype_matches_model"] = all(
-            abs(sequence.phenotype.get(k, v) - v) < 1e-6 for k, v in phenotype.items()
-        )
-        if not description["phenotype_matches_model"]:
-            progress.status(f"{sequence.source}: recorded for another Anny phenotype; its pose parameters are "
-                            "applied to the model's subject")
-    if path.is_dir():
-        captured = (path / MANIFEST_NAME).is_file()
-        inputs = ([InputRecord(path, "capture")] if captured
-                  else [InputRecord(sequence.source), InputRecord(path / "capture.json")])
-    else:
-        inputs = [InputRecord(path)]
-    return ExportPoses(
-        names=list(selected.frame_names), local_rotations=rotations, root_translation=translation,
-        fps=float(sequence.fps or DEFAULT_FPS), description=description, inputs=inputs,
-    )
-
-
-def load_export_poses(options: ExportOptions, model: LoadedModel, progress: ProgressSink = NULL_PROGRESS) -> ExportPoses:
+def load_export_poses(options: ExportOptions, model: ModelArtifact, progress: ProgressSink = NULL_PROGRESS) -> PoseSequence:
     """The frames `--pose` asks for (a pose file, a capture v1 directory or a dataset artifact)."""
-    path = Path(options.pose)
-    if not path.exists():
-        raise InputError(f"--pose {path}: no such file or directory")
-    if path.is_dir() and (path / MANIFEST_NAME).is_file():
-        kind = read_manifest(path)["artifact"]
-        if kind == "dataset":
-            return _dataset_poses(options, model)
-        if kind != "capture":
-            raise ArtifactError(
-                f"--pose {path}: is a {kind} artifact; --pose takes a pose .npz, a capture directory or a "
-                "dataset artifact"
-            )
-    return _sequence_poses(options, model, progress)
+
+    def selection(n_frames: int, where: str) -> list[int]:
+        if options.all_frames:
+            return list(range(n_frames))
+        frame = 0 if options.frame is None else options.frame
+        if frame >= n_frames:
+            raise InputError(f"--frame {frame}: {where} has {n_frames} frames (0..{n_frames - 1})")
+        return [frame]
+
+    return read_poses(model, Path(options.pose), selection, anny_cache=options.anny_cache, on_status=progress.status,
+                      option="--pose")
 
 
 # --------------------------------------------------------------------------------------------
 # Geometry
-
-
-def _closed_sdf(avatar: Avatar):
-    """SDF of the canonical surface intersected with the canonical box: x (P, 3) -> (P,).
-
-    max(sdf, box distance) is the SDF of the intersection (up to the usual max-bound), so a
-    surface that reaches the box is capped there instead of left open.
-    """
-    box = avatar.canonical_box
-    centre, half = (box[0] + box[1]) / 2, (box[1] - box[0]) / 2
-
-    def sdf_fn(x_canonical: torch.Tensor) -> torch.Tensor:
-        sdf = avatar.sdf_field(x_canonical)[0].reshape(-1)
-        q = (x_canonical - centre).abs() - half
-        box_sdf = q.clamp_min(0).norm(dim=-1) + q.amax(dim=-1).clamp_max(0)
-        return torch.maximum(sdf, box_sdf)
-
-    return sdf_fn
-
-
-def _extract(sdf_fn, box_min: np.ndarray, box_max: np.ndarray, resolution: int, coarse: int, device,
-             progress: ProgressSink, what: str, band: float = 1.0, chunk_points: int = 2**17):
-    with progress.task(what, total=None) as advance:
-        seen = [0]
-
-        def report(done: int, total: int) -> None:
-            advance(done - seen[0], points=f"{done / 1e6:.2f}M")
-            seen[0] = done
-
-        return extract_mesh(sdf_fn, box_min, box_max, resolution=resolution, coarse_resolution=coarse,
-                            progress=report, device=device, band=band, chunk_points=chunk_points)
-
-
-@torch.no_grad()
-def canonical_surface(
-    avatar: Avatar, resolution: int, coarse_resolution: int = COARSE_RESOLUTION, progress: ProgressSink = NULL_PROGRESS
-) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes of the canonical SDF capped by the canonical box (closed), before cleanup.
-
-    Returns vertices (V, 3) float32 in canonical space and faces (F, 3) int64, outward wound.
-    """
-    box = avatar.canonical_box.detach().cpu().numpy().astype(np.float64)
-    pad = _BOX_PAD * float((box[1] - box[0]).max())
-    return _extract(_closed_sdf(avatar), box[0] - pad, box[1] + pad, resolution, coarse_resolution,
-                    avatar.canonical_box.device, progress, "marching cubes (canonical)")
-
-
-@torch.no_grad()
-def posed_surface(
-    avatar: Avatar, frame: PreparedFrame, pose: torch.Tensor, box_min: np.ndarray, box_max: np.ndarray,
-    resolution: int, coarse_resolution: int = COARSE_RESOLUTION // 2, progress: ProgressSink = NULL_PROGRESS,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes in posed space (the paper's alternative), before cleanup.
-
-    The SDF of a posed point is the canonical SDF at its correspondence (root finding plus the
-    non-rigid offset), +1 m where it has none. Returns world vertices (V, 3) and faces (F, 3).
-    """
-
-    def sdf_fn(x_posed: torch.Tensor) -> torch.Tensor:
-        x_rigid, found = avatar.correspond(x_posed, frame, pose)
-        sdf = avatar.sdf_field(avatar.offset_points(x_rigid, pose))[0].reshape(-1)
-        return torch.where(found, sdf, torch.full_like(sdf, _NO_ROOT_SDF))
-
-    # Skinning stretches distances a little, so the narrow band is widened (see extract_mesh).
-    return _extract(sdf_fn, box_min, box_max, resolution, coarse_resolution, avatar.canonical_box.device,
-                    progress, "marching cubes (posed)", band=2.0, chunk_points=2**15)
-
-
-@torch.no_grad()
-def posed_vertex_colors(avatar: Avatar, frame: PreparedFrame, pose: torch.Tensor, x_posed: np.ndarray) -> np.ndarray:
-    """sRGB (V, 3) uint8 of the colour field at the canonical correspondences of posed points."""
-    x_posed_torch = torch.from_numpy(np.asarray(x_posed, np.float32)).to(avatar.canonical_box.device)
-    x_rigid, _ = avatar.correspond(x_posed_torch, frame, pose)
-    return vertex_colors(avatar, avatar.offset_points(x_rigid, pose).cpu().numpy())
 
 
 def _clean(vertices: np.ndarray, faces: np.ndarray, options: ExportOptions) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -404,86 +225,17 @@ def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.
         mesh.export(path)
 
 
-# --------------------------------------------------------------------------------------------
-# Maps
+@contextmanager
+def _marching_progress(progress: ProgressSink, what: str) -> Iterator[Callable[[int, int], None]]:
+    """extract_mesh's progress(done, total) callback, drawn as a progress task."""
+    with progress.task(what, total=None) as advance:
+        seen = [0]
 
+        def report(done: int, total: int) -> None:
+            advance(done - seen[0], points=f"{done / 1e6:.2f}M")
+            seen[0] = done
 
-def frontal_camera(vertices: np.ndarray, body_axes: np.ndarray, size: int, fov_deg: float = CAMERA_FOV_DEG
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """A pinhole camera in front of the body that frames all vertices.
-
-    Args:
-        vertices: (V, 3) world points to frame.
-        body_axes: (3, 3) columns = the body's left, up, forward directions in world.
-        size: image height = width in pixels; fov_deg: field of view.
-    Returns:
-        K (3, 3) and w2c (4, 4) (OpenCV: x right, y down, z forward), float64.
-    """
-    _, up, forward = body_axes.T
-    z_axis = -forward  # the camera looks at the face
-    y_axis = -up
-    x_axis = np.cross(y_axis, z_axis)
-    rotation = np.stack((x_axis, y_axis, z_axis))
-    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-    local = (vertices - centre) @ rotation.T
-    tan_half = math.tan(math.radians(fov_deg) / 2)
-    # Each vertex needs |offset in the image plane| <= tan_half * (its depth from the camera) / margin.
-    margin = 1.1
-    distance = float(np.max(-local[:, 2] + np.abs(local[:, :2]).max(axis=1) * margin / tan_half))
-    position = centre - z_axis * distance
-    w2c = np.eye(4)
-    w2c[:3, :3] = rotation
-    w2c[:3, 3] = -rotation @ position
-    focal = size / 2 / tan_half
-    K = np.array([[focal, 0.0, (size - 1) / 2], [0.0, focal, (size - 1) / 2], [0.0, 0.0, 1.0]])
-    return K, w2c
-
-
-def mesh_maps(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, K: np.ndarray, w2c: np.ndarray,
-              size: int) -> dict[str, np.ndarray]:
-    """Ray-cast depth (Z: camera z), unit world normals (N), coverage (A) and linear colour (RGB)."""
-    rays = CameraRays(K, w2c, size, size, supersample=1)
-    caster = MeshRayCaster(vertices, faces)
-    directions = rays.directions.reshape(-1, 3)
-    hits = caster.first_hits(np.broadcast_to(rays.origin, directions.shape), directions)
-    hit = hits.hit
-    x_world = rays.origin + directions.astype(np.float64) * np.where(hit, hits.distance, 0.0)[:, None]
-    depth = np.where(hit, x_world @ w2c[2, :3] + w2c[2, 3], 0.0)
-    normals = interpolate_vertex_values(vertex_normals(vertices, faces), faces, hits)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    normals = np.where(hit[:, None] & (length > 0), normals / np.maximum(length, 1e-12), 0.0)
-    rgb = srgb_to_linear(interpolate_vertex_values(colors / 255.0, faces, hits)) * hit[:, None]
-    shape = (size, size)
-    return {
-        "Z": depth.reshape(shape).astype(np.float32),
-        "N": normals.reshape(shape + (3,)).astype(np.float32),
-        "A": hit.reshape(shape).astype(np.float32),
-        "RGB": rgb.reshape(shape + (3,)).astype(np.float32),
-    }
-
-
-def _body_axes(body_model: str) -> np.ndarray:
-    # Bare skeletons have no convention of their own; SMPL's (+Y up, +Z forward) is assumed.
-    return body_to_world(body_model if body_model in ("anny", "smpl") else "smpl")
-
-
-# --------------------------------------------------------------------------------------------
-# The stage
-
-
-def _input_json(records: list[InputRecord]) -> list[dict]:
-    return [record.to_json() for record in records]
-
-
-def _up_to_date(out: Path, config: dict, inputs: list[dict]) -> bool:
-    if not (out / MANIFEST_NAME).is_file():
-        return False
-    try:
-        manifest = read_artifact(out, expected="mesh")
-    except ArtifactError:
-        return False
-    return (sha256_json(manifest["config"]) == sha256_json(config)
-            and [i["sha256"] for i in manifest["inputs"]] == [i["sha256"] for i in inputs])
+        yield report
 
 
 @dataclass(frozen=True)
@@ -495,31 +247,62 @@ class _Canonical:
     colors: np.ndarray  # (V, 3) uint8 sRGB
     skin_weights: np.ndarray | None  # (V, J) full grid weights, when a GLB is written
     sparse_sets: dict | None  # {4: (joints, weights), 8: ...} top-k of skin_weights (sparse_weight_sets)
+    record: dict  # the manifest's canonical record (without its files)
 
 
-def _export_frame(
-    tmp: Path, model: LoadedModel, canonical: _Canonical, name: str, transforms: torch.Tensor, condition: torch.Tensor,
-    options: ExportOptions, progress: ProgressSink,
-) -> tuple[dict, dict | None, np.ndarray]:
-    """Write posed/<name>.* (and the posed-marching mesh) of one frame.
+def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, progress: ProgressSink) -> _Canonical:
+    """Extract, clean and colour the canonical surface (and weigh it for the GLB)."""
+    avatar = model.avatar
+    with clock("extract_s"), _marching_progress(progress, "marching cubes (canonical)") as report:
+        raw_vertices, raw_faces = canonical_surface(avatar, options.resolution, options.coarse_resolution, report)
+    if raw_faces.shape[0] == 0:
+        raise InputError(
+            f"{model.path}: the model's SDF has no surface inside its canonical box (nothing to export); "
+            "train longer or check the training log"
+        )
+    with clock("cleanup_s"):
+        vertices, faces, cleanup = _clean(raw_vertices, raw_faces, options)
+        watertight = is_watertight(vertices, faces)
+    box = avatar.canonical_box.detach().cpu().numpy().astype(np.float64)
+    half_voxel = 0.5 * float((box[1] - box[0]).max()) * (1 + 2 * _BOX_PAD) / (options.resolution - 1)
+    on_box = np.any((np.abs(vertices - box[0]) < half_voxel) | (np.abs(vertices - box[1]) < half_voxel), axis=1)
+    with clock("colors_s"):
+        colors = vertex_colors(avatar, vertices)
+    skin_weights = None
+    if "glb" in options.formats:
+        with clock("skin_weights_s"):
+            skin_weights = vertex_skin_weights(avatar, vertices)
+    record = {
+        "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
+        "watertight": watertight, "resolution": options.resolution, "coarse_resolution": options.coarse_resolution,
+        "raw_vertices": int(raw_vertices.shape[0]), "raw_faces": int(raw_faces.shape[0]),
+        **{key: cleanup[key] for key in ("components", "components_dropped", "faces_dropped_in_components",
+                                         "taubin_steps", "decimated")},
+        "vertices_on_box": int(on_box.sum()),
+        "bounds": [vertices.min(axis=0).tolist(), vertices.max(axis=0).tolist()],
+    }
+    return _Canonical(vertices, faces, colors, skin_weights,
+                      None if skin_weights is None else sparse_weight_sets(skin_weights), record)
 
-    Args:
-        transforms: (J, 4, 4) bone transforms; condition: (P,) pose conditioning.
+
+def _export_frame(tmp: Path, model: ModelArtifact, canonical: _Canonical, poses: PoseSequence, k: int,
+                  options: ExportOptions, progress: ProgressSink) -> tuple[dict, dict | None, np.ndarray]:
+    """Write posed/<name>.* (and the posed-marching mesh) of frame k.
+
     Returns:
         the frame's manifest record, its posed-marching record (None without --posed-marching) and
         the posed vertices (V, 3) in world coordinates.
     """
-    avatar = model.avatar
-    frame = avatar.deformer.prepare(transforms)
-    x_posed = pose_canonical_vertices(avatar, canonical.vertices, frame, condition)
+    name, transforms = poses.frame_names[k], poses.bone_transforms[k].to(model.device)
+    posed = model.posed(transforms, poses.pose_condition[k])
+    x_posed = posed.pose_vertices(canonical.vertices)
     record = {"name": name, "files": [], "bounds": [x_posed.min(axis=0).tolist(), x_posed.max(axis=0).tolist()]}
     for fmt in [f for f in options.formats if f in ("ply", "obj")] or ["ply"]:
         _write_mesh(tmp / "posed" / f"{name}.{fmt}", x_posed, canonical.faces, canonical.colors)
         record["files"].append(f"posed/{name}.{fmt}")
-    if canonical.skin_weights is not None:
+    if canonical.sparse_sets is not None:
         # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset),
-        x_canonical = torch.from_numpy(canonical.vertices).to(avatar.canonical_box.device)
-        full_lbs = avatar.deformer.forward_skinning(x_canonical, frame).cpu().numpy()
+        full_lbs = posed.skin(torch.from_numpy(canonical.vertices)).cpu().numpy()
         joints, weights = canonical.sparse_sets[4]
         gap = np.linalg.norm(lbs_sparse(canonical.vertices, joints, weights, transforms) - full_lbs, axis=1)
         record["glb_top4_gap_mm"] = {"max": float(gap.max() * 1e3), "mean": float(gap.mean() * 1e3)}
@@ -527,25 +310,66 @@ def _export_frame(
         record["glb_drift_mm"] = skin_drift_mm(canonical.vertices, canonical.sparse_sets, transforms, x_posed)
     if not options.posed_marching:
         return record, None, x_posed
+    return record, _posed_marching(tmp, posed, name, x_posed, options, progress), x_posed
 
+
+def _posed_marching(tmp: Path, posed: PosedAvatar, name: str, x_posed: np.ndarray, options: ExportOptions,
+                    progress: ProgressSink) -> dict:
+    """posed/<name>.marched.ply: marching cubes in posed space; its record (sizes, distance to the LBS mesh)."""
     started = time.perf_counter()
     margin = max(0.05, 0.05 * float((x_posed.max(axis=0) - x_posed.min(axis=0)).max()))
-    vertices, faces = posed_surface(avatar, frame, condition, x_posed.min(axis=0) - margin, x_posed.max(axis=0) + margin,
-                                    options.resolution, max(options.coarse_resolution // 2, 8), progress)
-    vertices, faces, report = _clean(vertices, faces, options)
+    with _marching_progress(progress, "marching cubes (posed)") as report:
+        vertices, faces = posed_surface(posed, x_posed.min(axis=0) - margin, x_posed.max(axis=0) + margin,
+                                        options.resolution, max(options.coarse_resolution // 2, 8), report)
+    vertices, faces, cleanup = _clean(vertices, faces, options)
     marched = {"name": name, "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
                "watertight": bool(faces.shape[0] and is_watertight(vertices, faces)),
-               "components_dropped": report["components_dropped"]}
+               "components_dropped": cleanup["components_dropped"]}
     if faces.shape[0]:
-        _write_mesh(tmp / "posed" / f"{name}.marched.ply", vertices, faces,
-                    posed_vertex_colors(avatar, frame, condition, vertices))
+        _write_mesh(tmp / "posed" / f"{name}.marched.ply", vertices, faces, posed_vertex_colors(posed, vertices))
         marched["file"] = f"posed/{name}.marched.ply"
         # Symmetric mean vertex distance to the LBS-posed mesh, to compare the two methods.
         to_lbs = scipy.spatial.cKDTree(x_posed).query(vertices)[0]
         to_marched = scipy.spatial.cKDTree(vertices).query(x_posed)[0]
         marched["mean_distance_to_posed_mm"] = float(0.5 * (to_lbs.mean() + to_marched.mean()) * 1e3)
     marched["seconds"] = time.perf_counter() - started
-    return record, marched, x_posed
+    return marched
+
+
+@dataclass
+class _Posed:
+    """What posing the frames wrote: per-frame records, posed-marching records, EXR views."""
+
+    frames: list[dict]
+    marched: list[dict]
+    map_views: list[tuple[str, np.ndarray, np.ndarray]]
+
+
+def _pose_frames(tmp: Path, model: ModelArtifact, canonical: _Canonical, poses: PoseSequence | None,
+                 options: ExportOptions, clock: StageClock, progress: ProgressSink) -> _Posed:
+    body_axes = model.body_axes
+    result = _Posed([], [], [("canonical", canonical.vertices, body_axes)] if options.exr else [])
+    if poses is None:
+        return result
+    with clock("posing_s"), progress.task("posing frames", total=poses.n_frames) as advance:
+        for k in range(poses.n_frames):
+            record, marched, x_posed = _export_frame(tmp, model, canonical, poses, k, options, progress)
+            result.frames.append(record)
+            if marched is not None:
+                result.marched.append(marched)
+            # The frontal camera turns with the root: it faces the body in every pose.
+            if options.exr:
+                root_rotation = poses.bone_transforms[k, 0, :3, :3].double().cpu().numpy()
+                result.map_views.append((poses.frame_names[k], x_posed, root_rotation @ body_axes))
+            advance(1)
+    if options.posed_marching:
+        clock.timings["posed_marching_s"] = sum(m["seconds"] for m in result.marched)
+        clock.timings["posing_s"] -= clock.timings["posed_marching_s"]
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# Maps and textures
 
 
 def _write_maps(tmp: Path, views: list[tuple[str, np.ndarray, np.ndarray]], canonical: _Canonical, size: int,
@@ -564,8 +388,8 @@ def _write_maps(tmp: Path, views: list[tuple[str, np.ndarray, np.ndarray]], cano
     return records
 
 
-def _write_textured(tmp: Path, model: LoadedModel, textured: TexturedMesh, options: ExportOptions,
-                    poses: ExportPoses | None) -> dict:
+def _write_textured(tmp: Path, model: ModelArtifact, textured: TexturedMesh, options: ExportOptions,
+                    poses: PoseSequence | None) -> dict:
     """textured/avatar.png, .obj + .mtl and (with glb) the textured, rigged avatar.glb; their manifest record.
 
     The OBJ is written in glTF's +Y-up frame like the GLB (both are for other tools; canonical.*
@@ -577,7 +401,7 @@ def _write_textured(tmp: Path, model: LoadedModel, textured: TexturedMesh, optio
     (folder / "avatar.png").write_bytes(png)
     files = ["textured/avatar.png"]
     if "obj" in options.formats:
-        axes = gltf_axes(model.manifest["data"]["body_model"])
+        axes = gltf_axes(model.body_model)
         obj, mtl = textured_obj(textured.vertices.astype(np.float64) @ axes.T, textured.faces, textured.uv,
                                 "avatar.mtl", "avatar.png")
         (folder / "avatar.obj").write_text(obj)
@@ -598,163 +422,95 @@ def _write_textured(tmp: Path, model: LoadedModel, textured: TexturedMesh, optio
     }
 
 
+def _write_canonical(tmp: Path, model: ModelArtifact, canonical: _Canonical, poses: PoseSequence | None,
+                     options: ExportOptions) -> tuple[list[str], dict | None]:
+    """canonical.ply/.obj/.glb; the files written and the GLB's record."""
+    files: list[str] = []
+    for fmt in (f for f in options.formats if f in ("ply", "obj")):
+        _write_mesh(tmp / f"canonical.{fmt}", canonical.vertices, canonical.faces, canonical.colors)
+        files.append(f"canonical.{fmt}")
+    if canonical.skin_weights is None:
+        return files, None
+    motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
+    facts = write_model_glb(tmp / "canonical.glb", model, canonical.vertices, canonical.faces, canonical.colors,
+                            canonical.skin_weights, options.influences, motion=motion)
+    files.append("canonical.glb")
+    return files, {"file": "canonical.glb", **facts, "drift_mm": None}
+
+
+def _summary(out: Path, device: torch.device, options: ExportOptions, canonical: _Canonical, files: list[str],
+             textured: dict | None, poses: PoseSequence | None, maps: list[dict], seconds: float) -> dict:
+    summary = {
+        "mesh": str(out), "device": str(device), "resolution": options.resolution,
+        "vertices": canonical.record["vertices"], "faces": canonical.record["faces"],
+        "watertight": canonical.record["watertight"], "components_dropped": canonical.record["components_dropped"],
+        "files": [str(out / f) for f in files], "seconds": round(seconds, 1),
+    }
+    if textured is not None:
+        summary["textured"] = [str(out / f) for f in textured["files"]]
+    if poses is not None:
+        summary["posed_frames"] = poses.n_frames
+        summary["posed_dir"] = str(out / "posed")
+    if maps:
+        summary["maps"] = str(out / "maps")
+    return summary
+
+
 def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Extract, clean, colour, rig and (with --pose) pose the avatar's mesh; write the mesh artifact.
 
     Returns a JSON-able summary. Raises InputError / ArtifactError / BodyModelError /
     NotAvailableError for problems a user can fix; nothing is written then.
     """
-    started = time.perf_counter()
+    clock = StageClock()
     _check_options(options)
-    timings: dict[str, float] = {}
     device = resolve_device(options.device)
     build_kernels(device, progress)
     out, model_path = Path(options.out), Path(options.model)
     output_inputs = [model_path, options.pose]
     check_output_target(out, "mesh", output_inputs)
     _check_memory(options, model_path)
+    with clock("load_s"):
+        model = load_model(model_path, device)
+        poses = load_export_poses(options, model, progress) if options.pose is not None else None
+    inputs = [InputRecord(model_path, "model"), *(poses.inputs if poses else ())]
+    if not options.force and unchanged(out, "mesh", options.config(), inputs):
+        return skipped("mesh", out)
 
-    tick = time.perf_counter()
-    model = load_model(model_path, device)
-    avatar, data, subject = model.avatar, model.manifest["data"], model.subject
-    poses = load_export_poses(options, model, progress) if options.pose is not None else None
-    timings["load_s"] = time.perf_counter() - tick
-    config = options.config()
-    inputs = [InputRecord(model_path, "model")] + (poses.inputs if poses else [])
-    if not options.force and _up_to_date(out, config, _input_json(inputs)):
-        return {"mesh": str(out), "skipped": "inputs and options unchanged (use --force to redo)"}
-
-    tick = time.perf_counter()
-    raw_vertices, raw_faces = canonical_surface(avatar, options.resolution, options.coarse_resolution, progress)
-    timings["extract_s"] = time.perf_counter() - tick
-    if raw_faces.shape[0] == 0:
-        raise InputError(
-            f"{model_path}: the model's SDF has no surface inside its canonical box (nothing to export); "
-            "train longer or check the training log"
-        )
-    tick = time.perf_counter()
-    vertices, faces, cleanup = _clean(raw_vertices, raw_faces, options)
-    watertight = is_watertight(vertices, faces)
-    timings["cleanup_s"] = time.perf_counter() - tick
-    box = avatar.canonical_box.detach().cpu().numpy().astype(np.float64)
-    half_voxel = 0.5 * float((box[1] - box[0]).max()) * (1 + 2 * _BOX_PAD) / (options.resolution - 1)
-    on_box = np.any((np.abs(vertices - box[0]) < half_voxel) | (np.abs(vertices - box[1]) < half_voxel), axis=1)
-
-    tick = time.perf_counter()
-    colors = vertex_colors(avatar, vertices)
-    timings["colors_s"] = time.perf_counter() - tick
-    skin_weights = None
-    if "glb" in options.formats:
-        tick = time.perf_counter()
-        skin_weights = vertex_skin_weights(avatar, vertices)
-        timings["skin_weights_s"] = time.perf_counter() - tick
-    canonical = _Canonical(vertices, faces, colors, skin_weights,
-                           None if skin_weights is None else sparse_weight_sets(skin_weights))
+    canonical = _canonical(model, options, clock, progress)
     textured = None
     if options.texture_size:
-        tick = time.perf_counter()
-        textured = textured_mesh(vertices, faces, lambda points: surface_colors(avatar, points),
-                                 options.textured_faces, options.texture_size)
-        timings["textured_s"] = time.perf_counter() - tick
-
-    canonical_files: list[str] = []
-    posed_records: list[dict] = []
-    marched_records: list[dict] = []
-    map_records: list[dict] = []
-    glb_info = None
+        with clock("textured_s"):
+            textured = textured_mesh(canonical.vertices, canonical.faces, lambda x: surface_colors(model.avatar, x),
+                                     options.textured_faces, options.texture_size)
     with atomic_directory(out, kind="mesh", inputs=output_inputs) as tmp:
-        tick = time.perf_counter()
-        for fmt in (f for f in options.formats if f in ("ply", "obj")):
-            _write_mesh(tmp / f"canonical.{fmt}", vertices, faces, colors)
-            canonical_files.append(f"canonical.{fmt}")
-        if skin_weights is not None:
-            motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
-            facts = write_model_glb(tmp / "canonical.glb", model, vertices, faces, colors, skin_weights,
-                                    options.influences, motion=motion)
-            canonical_files.append("canonical.glb")
-            glb_info = {"file": "canonical.glb", **facts, "drift_mm": None}
-        timings["write_canonical_s"] = time.perf_counter() - tick
+        with clock("write_canonical_s"):
+            files, glb = _write_canonical(tmp, model, canonical, poses, options)
         textured_info = None
         if textured is not None:
-            tick = time.perf_counter()
-            textured_info = _write_textured(tmp, model, textured, options, poses)
-            timings["write_textured_s"] = time.perf_counter() - tick
-
-        body_axes = _body_axes(data["body_model"])
-        map_views = [("canonical", vertices, body_axes)] if options.exr else []
-        if poses is not None:
-            avatar.nonrigid.set_enabled(avatar.nonrigid.enabled and options.nonrigid)
-            posed = model.pose(poses.local_rotations, poses.root_translation)
-            transforms, conditions = posed.bone_transforms.to(device), posed.pose_condition.to(device)
-            tick = time.perf_counter()
-            with progress.task("posing frames", total=len(poses.names)) as advance:
-                for k, name in enumerate(poses.names):
-                    record, marched, x_posed = _export_frame(tmp, model, canonical, name, transforms[k], conditions[k],
-                                                             options, progress)
-                    posed_records.append(record)
-                    if marched is not None:
-                        marched_records.append(marched)
-                    # The frontal camera turns with the root: it faces the body in every pose.
-                    if options.exr:
-                        root_rotation = transforms[k, 0, :3, :3].double().cpu().numpy()
-                        map_views.append((name, x_posed, root_rotation @ body_axes))
-                    advance(1)
-            timings["posing_s"] = time.perf_counter() - tick
-            if glb_info is not None:
-                glb_info["drift_mm"] = {
-                    k: max(r["glb_drift_mm"][k]["max"] for r in posed_records) for k in ("4", "8")
-                }
-            if options.posed_marching:
-                timings["posed_marching_s"] = sum(m["seconds"] for m in marched_records)
-                timings["posing_s"] -= timings["posed_marching_s"]
-        if map_views:
-            tick = time.perf_counter()
-            map_records = _write_maps(tmp, map_views, canonical, options.exr_size, progress)
-            timings["maps_s"] = time.perf_counter() - tick
-
-        data_json = {
-            "model": str(model_path),
-            "body_model": data["body_model"],
-            "device": str(device),
-            "canonical": {
-                "files": canonical_files, "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
-                "watertight": watertight, "resolution": options.resolution,
-                "coarse_resolution": options.coarse_resolution,
-                "raw_vertices": int(raw_vertices.shape[0]), "raw_faces": int(raw_faces.shape[0]),
-                **{key: cleanup[key] for key in ("components", "components_dropped", "faces_dropped_in_components",
-                                                 "taubin_steps", "decimated")},
-                "vertices_on_box": int(on_box.sum()),
-                "bounds": [vertices.min(axis=0).tolist(), vertices.max(axis=0).tolist()],
-            },
-            "glb": glb_info,
-            "textured": textured_info,
+            with clock("write_textured_s"):
+                textured_info = _write_textured(tmp, model, textured, options, poses)
+        model.avatar.nonrigid.set_enabled(model.avatar.nonrigid.enabled and (poses is None or options.nonrigid))
+        posed = _pose_frames(tmp, model, canonical, poses, options, clock, progress)
+        if glb is not None and posed.frames:
+            glb["drift_mm"] = {k: max(r["glb_drift_mm"][k]["max"] for r in posed.frames) for k in ("4", "8")}
+        maps = []
+        if posed.map_views:
+            with clock("maps_s"):
+                maps = _write_maps(tmp, posed.map_views, canonical, options.exr_size, progress)
+        data = {
+            "model": str(model_path), "body_model": model.body_model, "device": str(device),
+            "canonical": {"files": files, **canonical.record},
+            "glb": glb, "textured": textured_info,
             "posed": None if poses is None else {
-                **poses.description, "nonrigid": bool(avatar.nonrigid.enabled), "frames": posed_records,
+                **poses.description, "nonrigid": bool(model.avatar.nonrigid.enabled), "frames": posed.frames,
             },
-            "posed_marching": marched_records if options.posed_marching else None,
-            "maps": None if not map_records else {
+            "posed_marching": posed.marched if options.posed_marching else None,
+            "maps": None if not maps else {
                 "size": [options.exr_size, options.exr_size], "cameras": "maps/cameras.npz",
-                "channels": ["Z", "N", "A", "RGB"], "fov_deg": CAMERA_FOV_DEG, "views": map_records,
+                "channels": ["Z", "N", "A", "RGB"], "fov_deg": CAMERA_FOV_DEG, "views": maps,
             },
         }
-        timings["total_s"] = time.perf_counter() - started
-        build_manifest(
-            "mesh", tmp, stage="export", config=config, inputs=inputs, data=data_json, device=str(device),
-            timings=timings, peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()},
-        )
-
-    summary = {
-        "mesh": str(out), "device": str(device), "resolution": options.resolution,
-        "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]), "watertight": watertight,
-        "components_dropped": cleanup["components_dropped"],
-        "files": [str(out / f) for f in canonical_files],
-        "seconds": round(timings["total_s"], 1),
-    }
-    if textured_info is not None:
-        summary["textured"] = [str(out / f) for f in textured_info["files"]]
-    if poses is not None:
-        summary["posed_frames"] = len(poses.names)
-        summary["posed_dir"] = str(out / "posed")
-    if map_records:
-        summary["maps"] = str(out / "maps")
-    return summary
+        build_manifest("mesh", tmp, stage="export", config=options.config(), inputs=inputs, data=data, device=str(device),
+                       timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()})
+    return _summary(out, device, options, canonical, files, textured_info, poses, maps, clock.timings["total_s"])

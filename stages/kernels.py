@@ -1,5 +1,6 @@
-"""Build the CPU kernels before a stage's work starts, under a progress bar, the first time only.
+"""The device a stage runs on, and its CPU kernels built before the work starts (first time only).
 
+    device = resolve_device("auto")   # cuda when available, else cpu
     build_kernels(device, progress)   # no-op on CUDA, with IGAVATAR_KERNELS=0 or when cached
 
 Without this the first training step would silently stall for the minute a build takes.
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import torch
 
+from igavatar.errors import InputError
 from igavatar.kernels import KERNEL_NAMES, kernel_built, kernels_enabled, load_kernel
 from stages.progress import NULL_PROGRESS, ProgressSink
 
@@ -24,3 +26,14 @@ def build_kernels(device: torch.device, progress: ProgressSink = NULL_PROGRESS) 
         for name in missing:
             load_kernel(name)
             advance()
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> cuda when available, else cpu; 'cuda' without a GPU is a clear error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available to torch here; use --device cpu or auto")
+    if name not in ("cpu", "cuda"):
+        raise InputError(f"--device {name!r}: expected auto, cpu or cuda")
+    return torch.device(name)

@@ -40,9 +40,10 @@ from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manife
 from igavatar.body.capsules import capsule_prior
 from igavatar.body.skeleton import linear_blend_skinning
 from igavatar.capture.capture_v1 import CaptureV1, load_image, load_mask
+from igavatar.geometry.projection import project_points
 from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.contact_sheet import contact_sheet
-from igavatar.capture.images import project_points, resize_image, resize_mask, resize_plan, scale_intrinsics, undistort
+from igavatar.capture.images import resize_image, resize_mask, resize_plan, scale_intrinsics, undistort
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_smpl import smpl_model_for
@@ -344,7 +345,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                 cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
                 if i in sheet_frames:
-                    joints_uv = project_points(K[i], capture.w2c[i], canonical.posed_joints[i].double().numpy())
+                    joints_uv, _ = project_points(K[i], capture.w2c[i], canonical.posed_joints[i].double().numpy())
                     sheet_items.append((rgb, mask, joints_uv, frame if capture.has_masks else f"{frame} (est.)"))
                 advance(1)
         timings["frames_s"] = time.perf_counter() - tick

@@ -32,8 +32,9 @@ from igavatar.body.rotations import rigid_matrix
 from igavatar.body.skeleton import forward_kinematics, linear_blend_skinning
 from igavatar.errors import ArtifactError, InputError
 from igavatar.metrics.canonical import REST_SURFACE_FILE
-from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject, vertex_normals
-from igavatar.synth.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
+from igavatar.geometry.mesh_ops import vertex_normals
+from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject
+from igavatar.geometry.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
 from igavatar.synth.skeleton_capture import bare_skeleton_poses, root_only_poses
 from igavatar.synth.scene import frame_static_camera, lambert_shading, light_position, yaw_about_vertical
 from igavatar.synth.texture import TEXTURES, SolidTexture, find_landmarks, make_texture, region_ids

@@ -31,16 +31,18 @@ import torch
 from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
 from igavatar.artifacts.storage import storage_errors
 from igavatar.artifacts.targets import check_output_target
-from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, sha256_file, sha256_json
+from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file, sha256_json
+from igavatar.avatar.dataset import DatasetArtifact, read_dataset, training_data
+from igavatar.avatar.model import build_avatar
 from igavatar.errors import IgavatarError, InputError, Terminated
 from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import load_state, save_state
 from igavatar.training.config import TrainConfig, preset, with_overrides
-from igavatar.training.data import TrainingData
 from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_samples
 from igavatar.training.trainer import Trainer
-from stages.kernels import build_kernels
+from stages.kernels import build_kernels, resolve_device
+from stages.common import StageClock
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
 
@@ -74,17 +76,6 @@ class TrainOptions:
     resume: bool = False
 
 
-def resolve_device(name: str) -> torch.device:
-    """'auto' -> cuda when available, else cpu; 'cuda' without a GPU is a clear error."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA device is available to torch here; use --device cpu or auto")
-    if name not in ("cpu", "cuda"):
-        raise InputError(f"--device {name!r}: expected auto, cpu or cuda")
-    return torch.device(name)
-
-
 def resolve_config(options: TrainOptions) -> TrainConfig:
     """The preset with the CLI's overrides applied."""
     config = with_overrides(
@@ -115,44 +106,6 @@ def config_to_json(config: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
-def load_training_data(dataset: Path, manifest: dict) -> TrainingData:
-    """Frames of a dataset artifact as CPU tensors."""
-    frames = np.load(dataset / "frames.npz")
-    names = [str(n) for n in frames["frame_names"]]
-    images, masks = [], []
-    for name in names:
-        image = cv2.imread(str(dataset / "images" / f"{name}.png"), cv2.IMREAD_COLOR)
-        images.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-        masks.append(cv2.imread(str(dataset / "masks" / f"{name}.png"), cv2.IMREAD_GRAYSCALE) > 127)
-    train = torch.nonzero(torch.from_numpy(frames["is_train"]), as_tuple=True)[0]
-    if train.numel() == 0:
-        raise InputError(f"{dataset}: the dataset has no training frames (splits.train is empty)")
-    return TrainingData(
-        frame_names=names,
-        images=torch.from_numpy(np.stack(images)),
-        masks=torch.from_numpy(np.stack(masks)),
-        K=torch.from_numpy(frames["K"]).float(),
-        w2c=torch.from_numpy(frames["w2c"]).float(),
-        bone_transforms=torch.from_numpy(frames["bone_transforms"]).float(),
-        pose_condition=torch.from_numpy(frames["pose_condition"]).float(),
-        posed_boxes=torch.from_numpy(frames["posed_boxes"]).float(),
-        train_indices=train,
-    )
-
-
-def build_avatar(config: TrainConfig, subject: dict, pose_dim: int) -> Avatar:
-    """A fresh avatar for a subject (arrays of subject.npz)."""
-    return Avatar(
-        config.avatar,
-        canonical_box=torch.from_numpy(subject["canonical_box"]).float(),
-        skinning_grid=torch.from_numpy(subject["skinning_grid"]).float(),
-        grid_box_min=torch.from_numpy(subject["grid_box_min"]).float(),
-        grid_box_max=torch.from_numpy(subject["grid_box_max"]).float(),
-        pose_dim=pose_dim,
-        init_bones=tuple(int(i) for i in subject["init_bones"]),
-    )
-
-
 #: Bump when the shape initialisation's targets or optimisation change, so that caches written
 #: by an older version are not reused as if they were the same fit.
 SHAPE_INIT_VERSION = 2
@@ -176,11 +129,12 @@ def _snapshot(state: dict) -> dict:
 
 
 def _shape_initialise(
-    avatar: Avatar, config: TrainConfig, dataset: Path, subject: dict, cache_paths: list[Path], progress: ProgressSink
+    avatar: Avatar, config: TrainConfig, dataset: DatasetArtifact, cache_paths: list[Path], progress: ProgressSink
 ) -> tuple[dict, float]:
     """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds)."""
-    template = dataset / "template.ply"
-    key = _shape_init_key(config, sha256_file(template) if template.is_file() else None, subject["canonical_box"])
+    template = dataset.path / "template.ply"
+    canonical_box = dataset.subject.canonical_box
+    key = _shape_init_key(config, sha256_file(template) if template.is_file() else None, canonical_box)
     for path in cache_paths:
         if path.is_file():
             cached = load_state(path)
@@ -193,7 +147,7 @@ def _shape_initialise(
         import trimesh
 
         mesh = trimesh.load(template, process=False)
-        targets = template_sdf_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces), subject["canonical_box"], seed=config.seed)
+        targets = template_sdf_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces), canonical_box, seed=config.seed)
         with progress.task("shape initialisation", total=config.shape_init_steps) as advance:
             fit_sdf_to_template(
                 avatar.sdf_field, targets, config.shape_init_steps, config.shape_init_points, seed=config.seed,
@@ -279,59 +233,30 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
         raise
 
 
-def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
-    started = time.perf_counter()
-    dataset = Path(options.dataset)
-    manifest = read_artifact(dataset, expected="dataset")
-    out = Path(options.out)
-    check_output_target(out, "model", [dataset])  # before minutes of training, not after
-    device = resolve_device(options.device)
-    build_kernels(device, progress)
-    config = resolve_config(options)
-    require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
-                   f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
-    torch.manual_seed(config.seed)
-    subject = dict(np.load(dataset / "subject.npz"))
-    data = load_training_data(dataset, manifest)
-    avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
+@dataclass
+class _TrainingLog:
+    """training_log.csv rows (kept across --resume) and the checkpoint they are saved with."""
 
-    work = work_directory(out)
-    work.mkdir(parents=True, exist_ok=True)
-    checkpoint = work / "checkpoint.npz"
-    config_json = config_to_json(config)
-    dataset_sha = sha256_file(dataset / "manifest.json")
-    run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
+    path: Path
+    rows: list[dict]
 
-    shape_state, shape_seconds = _shape_initialise(
-        avatar, config, dataset, subject, [work / "shape_init.npz", out / "shape_init.npz"], progress
-    )
-    save_state(work / "shape_init.npz", shape_state)
-    trainer = Trainer(config, data, avatar, device)
+    @classmethod
+    def open(cls, path: Path, resume: bool) -> _TrainingLog:
+        rows = list(csv.DictReader(io.StringIO(path.read_text()))) if resume and path.is_file() else []
+        return cls(path, rows)
 
-    if options.resume:
-        state = load_state(checkpoint)
-        if state.get("run_key") != run_key:
-            raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
-        trainer.load_state_dict(state["trainer"])
-        progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
-
-    log_path = work / "training_log.csv"
-    log_rows: list[dict] = list(csv.DictReader(io.StringIO(log_path.read_text()))) if options.resume and log_path.is_file() else []
-    validation_frames = [int(data.train_indices[0])]
-    test_indices = [i for i, name in enumerate(data.frame_names) if name in manifest["data"]["splits"].get("test", [])]
-    if test_indices:
-        validation_frames.append(test_indices[0])
-
-    def save_checkpoint() -> None:
-        save_state(checkpoint, {"run_key": run_key, "config": json.dumps(config_json), "dataset_sha256": dataset_sha,
-                                "trainer": trainer.state_dict()})
+    def save(self) -> None:
         buffer = io.StringIO()
-        if log_rows:
-            writer = csv.DictWriter(buffer, fieldnames=list(log_rows[0]))
+        if self.rows:
+            writer = csv.DictWriter(buffer, fieldnames=list(self.rows[0]))
             writer.writeheader()
-            writer.writerows(log_rows)
-        atomic_write_bytes(log_path, buffer.getvalue().encode())
+            writer.writerows(self.rows)
+        atomic_write_bytes(self.path, buffer.getvalue().encode())
 
+
+def _train_loop(trainer: Trainer, config: TrainConfig, log: _TrainingLog, save_checkpoint, validation_frame: int,
+                work: Path, progress: ProgressSink) -> dict[str, float]:
+    """Step until the end; checkpoint, log and validate on schedule. Ctrl-C/SIGTERM checkpoint and raise."""
     last: dict[str, float] = {}
     try:
         with progress.task("training", total=trainer.total_steps) as advance:
@@ -339,70 +264,113 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
             while trainer.step < trainer.total_steps:
                 last = trainer.train_step()
                 if trainer.step % config.log_every == 0 or trainer.step == trainer.total_steps:
-                    log_rows.append({"step": trainer.step, **{k: f"{v:.6g}" for k, v in last.items()}})
+                    log.rows.append({"step": trainer.step, **{k: f"{v:.6g}" for k, v in last.items()}})
                 if config.checkpoint_every and trainer.step % config.checkpoint_every == 0:
                     save_checkpoint()
                 if config.validate_every and trainer.step % config.validate_every == 0 and trainer.step < trainer.total_steps:
-                    for index in validation_frames[:1]:
-                        panel, _ = _validation_png(trainer, index, config.validation_scale, config.validation_samples)
-                        _write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
+                    panel, _ = _validation_png(trainer, validation_frame, config.validation_scale, config.validation_samples)
+                    _write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
                 rate = trainer.step / max(trainer.seconds, 1e-9)
                 advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
     except KeyboardInterrupt as exc:
         save_checkpoint()
         interrupted = TrainingInterrupted(
             f"training {'terminated (SIGTERM)' if isinstance(exc, Terminated) else 'interrupted'} at step {trainer.step}; "
-            f"checkpoint saved to {checkpoint} (continue with `igavatar train --resume` and the same options)"
+            f"checkpoint saved to {log.path.parent / 'checkpoint.npz'} (continue with `igavatar train --resume` and the "
+            "same options)"
         )
         interrupted.exit_code = 143 if isinstance(exc, Terminated) else 130  # the shell's 128 + signal number
         raise interrupted from None
     save_checkpoint()
+    return last
 
-    train_seconds = trainer.seconds
-    tick = time.perf_counter()
-    validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples) for i in validation_frames}
-    render_seconds = time.perf_counter() - tick
 
-    with atomic_directory(out, kind="model", inputs=[dataset]) as tmp:
+def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, float], validation: dict,
+                config: TrainConfig) -> dict:
+    """The model manifest's data: the dataset's facts it carries on, the run's outcome and speed."""
+    data, train_seconds = dataset.data, trainer.seconds
+    return {
+        "dataset": str(dataset.path),
+        **{key: data[key] for key in ("body_model", "joint_names", "pose_dim", "image_size", "canonical_box", "splits")},
+        "subject": data.get("subject", {}),
+        "steps": trainer.step,
+        "final": {k: last.get(k) for k in ("loss", "psnr", "rgb", "alpha", "eikonal", "smooth", "beta") if k in last},
+        "speed": {
+            "iterations_per_second": trainer.step / max(train_seconds, 1e-9),
+            "rays_per_second": trainer.rays_seen / max(train_seconds, 1e-9),
+            "samples_per_second": trainer.samples_seen / max(train_seconds, 1e-9),
+            "threads": torch.get_num_threads(),
+        },
+        "validation_frames": list(validation),
+        "validation_psnr": {name: psnr for name, (_, psnr) in validation.items()},
+        "validation_scale": config.validation_scale,
+    }
+
+
+def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
+    clock = StageClock()
+    dataset = read_dataset(Path(options.dataset))
+    out = Path(options.out)
+    check_output_target(out, "model", [dataset.path])  # before minutes of training, not after
+    device = resolve_device(options.device)
+    build_kernels(device, progress)
+    config = resolve_config(options)
+    require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
+                   f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
+    torch.manual_seed(config.seed)
+    data = training_data(dataset)
+    avatar = build_avatar(config, dataset.subject, dataset.data["pose_dim"])
+
+    work = work_directory(out)
+    work.mkdir(parents=True, exist_ok=True)
+    checkpoint = work / "checkpoint.npz"
+    config_json = config_to_json(config)
+    dataset_sha = sha256_file(dataset.path / "manifest.json")
+    run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
+    shape_state, shape_seconds = _shape_initialise(
+        avatar, config, dataset, [work / "shape_init.npz", out / "shape_init.npz"], progress
+    )
+    clock.add("shape_init_s", shape_seconds)
+    save_state(work / "shape_init.npz", shape_state)
+    trainer = Trainer(config, data, avatar, device)
+    if options.resume:
+        state = load_state(checkpoint)
+        if state.get("run_key") != run_key:
+            raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
+        trainer.load_state_dict(state["trainer"])
+        progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
+    log = _TrainingLog.open(work / "training_log.csv", options.resume)
+
+    def save_checkpoint() -> None:
+        save_state(checkpoint, {"run_key": run_key, "config": json.dumps(config_json), "dataset_sha256": dataset_sha,
+                                "trainer": trainer.state_dict()})
+        log.save()
+
+    validation_frames = [int(data.train_indices[0])]
+    test_indices = [i for i, name in enumerate(data.frame_names) if name in dataset.splits.get("test", [])]
+    validation_frames += test_indices[:1]
+    last = _train_loop(trainer, config, log, save_checkpoint, validation_frames[0], work, progress)
+    clock.add("train_s", trainer.seconds)
+    with clock("validation_render_s"):
+        validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples)
+                      for i in validation_frames}
+    with atomic_directory(out, kind="model", inputs=[dataset.path]) as tmp:
         save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
-        shutil.copyfile(dataset / "subject.npz", tmp / "subject.npz")
+        shutil.copyfile(dataset.path / "subject.npz", tmp / "subject.npz")
         save_state(tmp / "shape_init.npz", shape_state)
-        shutil.copyfile(log_path, tmp / "training_log.csv")
+        shutil.copyfile(log.path, tmp / "training_log.csv")
         for name, (image, _) in validation.items():
             _write_png(tmp / "validation" / f"{name}.png", image)
-        steps_done = trainer.step
-        data_json = {
-            "dataset": str(dataset),
-            "body_model": manifest["data"]["body_model"],
-            "joint_names": manifest["data"]["joint_names"],
-            "pose_dim": manifest["data"]["pose_dim"],
-            "image_size": manifest["data"]["image_size"],
-            "canonical_box": manifest["data"]["canonical_box"],
-            "splits": manifest["data"]["splits"],
-            "subject": manifest["data"].get("subject", {}),
-            "steps": steps_done,
-            "final": {k: last.get(k) for k in ("loss", "psnr", "rgb", "alpha", "eikonal", "smooth", "beta") if k in last},
-            "speed": {
-                "iterations_per_second": steps_done / max(train_seconds, 1e-9),
-                "rays_per_second": trainer.rays_seen / max(train_seconds, 1e-9),
-                "samples_per_second": trainer.samples_seen / max(train_seconds, 1e-9),
-                "threads": torch.get_num_threads(),
-            },
-            "validation_frames": list(validation),
-            "validation_psnr": {name: psnr for name, (_, psnr) in validation.items()},
-            "validation_scale": config.validation_scale,
-        }
+        data_json = _model_data(dataset, trainer, last, validation, config)
         build_manifest(
-            "model", tmp, stage="train", config=config_json, inputs=[InputRecord(dataset, "dataset")],
-            data=data_json, seed=config.seed, device=str(device),
-            timings={"shape_init_s": shape_seconds, "train_s": train_seconds, "validation_render_s": render_seconds,
-                     "total_s": time.perf_counter() - started},
+            "model", tmp, stage="train", config=config_json, inputs=[InputRecord(dataset.path, "dataset")],
+            data=data_json, seed=config.seed, device=str(device), timings=clock.finish(),
             peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()},
         )
     shutil.rmtree(work, ignore_errors=True)
     return {
-        "model": str(out), "steps": steps_done, "device": str(device),
-        "train_seconds": round(train_seconds, 1),
+        "model": str(out), "steps": trainer.step, "device": str(device),
+        "train_seconds": round(trainer.seconds, 1),
         "it_per_s": round(data_json["speed"]["iterations_per_second"], 2),
         "samples_per_s": round(data_json["speed"]["samples_per_second"]),
         "validation_psnr": {name: round(psnr, 2) for name, (_, psnr) in validation.items()},

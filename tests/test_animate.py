@@ -29,8 +29,10 @@ from igavatar.render.cameras import (
     turntable_cameras,
 )
 from igavatar_cli.main import app
-from stages.animate import FRAMING_MARGIN, AnimateOptions, posed_boxes, resolve_motion, run_animate, skinned_cells
-from stages.model_io import load_model
+from igavatar.avatar.boxes import posed_boxes, skinned_cells
+from igavatar.avatar.cameras import FRAMING_MARGIN
+from igavatar.avatar.model import load_model
+from stages.animate import AnimateOptions, resolve_motion, run_animate
 
 # Tiny renders keep the file well under a minute on two shared cores.
 FAST = dict(resolution=24, samples=8)
@@ -205,13 +207,13 @@ def test_animated_glb_channels_round_trip_the_motion(walk_animation, tiny_model)
     with np.load(walk_animation / "poses.npz") as poses:
         rotations = axis_angle_to_matrix(torch.from_numpy(poses["rotvecs"]).double()).numpy()
         translation = poses["transl"].astype(np.float64)
-    relative, offset = pose_relative_to_canonical(rotations, translation, model.subject["canonical_rotations"],
-                                                  np.zeros(3), model.subject["parents"])
+    relative, offset = pose_relative_to_canonical(rotations, translation, model.subject.canonical_rotations,
+                                                  np.zeros(3), model.subject.parents)
     axes = gltf_axes("anny")
     expected_rotations, expected_offset = gltf_pose(axes, relative, offset)
     for j, name in enumerate(names):
         np.testing.assert_allclose(_quaternion_matrix(keys[(name, "rotation")]), expected_rotations[:, j], atol=2e-5)
-    root_bind = np.asarray(model.subject["canonical_joints"], np.float64)[0] @ axes.T
+    root_bind = np.asarray(model.subject.canonical_joints, np.float64)[0] @ axes.T
     np.testing.assert_allclose(keys[(names[0], "translation")], root_bind + expected_offset, atol=1e-5)
 
     # The clip's frame 1, skinned the glTF way, lands on igavatar's posed mesh within the reported drift.

@@ -26,18 +26,10 @@ from igavatar.metrics.report import (
 )
 from igavatar_cli.main import app
 from schemas import load_schema
-from stages.eval import (
-    IMAGE_DEFAULTS,
-    EvalOptions,
-    frame_geometry,
-    image_frame_indices,
-    lpips_scorer,
-    match_scans,
-    resolve_image_settings,
-    run_eval,
-    signed_volume,
-    volume_check,
-)
+from igavatar.capture.scans import match_scans
+from igavatar.metrics.frame_geometry import frame_geometry, signed_volume, volume_check
+from igavatar.metrics.lpips_scorer import lpips_scorer
+from stages.eval import IMAGE_DEFAULTS, EvalOptions, image_frame_indices, resolve_image_settings, run_eval
 
 FAST = dict(mesh_resolution=32, surface_samples=300, iou_points=20_000, image_scale=0.25, samples_per_ray=16, image_frames=0,
             device="cpu")

@@ -27,13 +27,15 @@ from igavatar.mesh.gltf import (
     read_glb_animation,
     read_rigged_glb,
 )
-from igavatar.mesh.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.mesh.posing import pose_canonical_vertices
+from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.model.avatar import Avatar
 from igavatar.training.config import preset
 from igavatar_cli.main import app
-from stages.export import ExportOptions, canonical_surface, frontal_camera, mesh_maps, posed_surface, run_export
-from stages.model_io import load_model
+from igavatar.avatar.model import load_model
+from igavatar.avatar.surfaces import canonical_surface, posed_surface
+from igavatar.mesh.maps import frontal_camera, mesh_maps
+from igavatar.model.posed import PosedAvatar
+from stages.export import ExportOptions, run_export
 
 RESOLUTION = 40  # marching cubes samples: small so the module stays fast on two cores
 
@@ -103,13 +105,12 @@ def test_posed_marching_and_lbs_posing_of_a_rigid_sphere_agree():
     radius = 0.3
     avatar = sphere_avatar(0.5, radius)
     transform = rigid_matrix(axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.5])), torch.tensor([0.2, 0.1, -0.3]))
-    frame = avatar.deformer.prepare(transform[None])
-    pose = torch.zeros(3)
+    posed_avatar = PosedAvatar.of(avatar, transform[None], torch.zeros(3))
     vertices, faces = canonical_surface(avatar, resolution=32, coarse_resolution=16)
-    posed = pose_canonical_vertices(avatar, vertices, frame, pose)
+    posed = posed_avatar.pose_vertices(vertices)
     expected = vertices @ transform[:3, :3].numpy().T + transform[:3, 3].numpy()
     np.testing.assert_allclose(posed, expected, atol=1e-5)
-    marched, marched_faces = posed_surface(avatar, frame, pose, np.full(3, -0.7), np.full(3, 0.6), resolution=32,
+    marched, marched_faces = posed_surface(posed_avatar, np.full(3, -0.7), np.full(3, 0.6), resolution=32,
                                            coarse_resolution=16)
     assert is_watertight(marched, marched_faces)
     assert np.abs(np.linalg.norm(marched - transform[:3, 3].numpy(), axis=1) - radius).max() < 2e-3
@@ -292,7 +293,7 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     body = AnnyBody.load(model.manifest["data"]["subject"]["phenotype"])
     rotations, translation = body.local_rotations_from_pose_parameters(torch.tensor(capture.poses["pose_parameters"][k:k + 1]))
     relative, offset = pose_relative_to_canonical(rotations[0].double().numpy(), translation[0].double().numpy(),
-                                                  model.subject["canonical_rotations"], np.zeros(3), model.subject["parents"])
+                                                  model.subject.canonical_rotations, np.zeros(3), model.subject.parents)
     glb_posed_gltf = pose_glb_vertices(out / "canonical.glb", *gltf_pose(axes, relative, offset))
     animation_rotations, animation_offset, _ = read_glb_animation(out / "canonical.glb")
     np.testing.assert_allclose(pose_glb_vertices(out / "canonical.glb", animation_rotations[0], animation_offset[0]),
@@ -321,8 +322,7 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     # And, the same posing with every weight, from the model directly (no non-rigid offset).
     model.avatar.nonrigid.set_enabled(False)
     bone_transforms = torch.from_numpy(np.load(small_run / "dataset" / "frames.npz")["bone_transforms"][k])
-    expected = pose_canonical_vertices(model.avatar, np.asarray(canonical.vertices), model.avatar.deformer.prepare(bone_transforms),
-                                       torch.zeros(model.manifest["data"]["pose_dim"]))
+    expected = model.posed(bone_transforms, torch.zeros(model.pose_dim)).pose_vertices(np.asarray(canonical.vertices))
     assert np.abs(posed - expected).max() < 1e-4
 
 
@@ -366,7 +366,7 @@ def test_eight_influences_and_drift_per_frame(small_run, tiny_model, tmp_path):
 def test_textured_export_bakes_the_colour_field_and_rigs_the_decimated_mesh(small_run, tiny_model, tmp_path):
     import cv2
 
-    from igavatar.mesh.posing import surface_colors
+    from igavatar.avatar.surfaces import surface_colors
 
     out = tmp_path / "mesh"
     run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128, textured_faces=800,

@@ -121,7 +121,7 @@ def test_static_capture_gets_a_hull_prior_that_holds_the_subject(static_run):
 
 def test_tiny_training_on_a_single_joint(static_run):
     run_train(TrainOptions(dataset=static_run / "dataset", out=static_run / "model", preset="tiny", steps=8, device="cpu"))
-    from stages.model_io import load_model
+    from igavatar.avatar.model import load_model
 
     model = load_model(static_run / "model")
     truth = trimesh.load(static_run / "capture" / "scans" / "train_0000.ply", process=False)
@@ -149,16 +149,15 @@ def test_volume_ratio_is_one_for_rigid_motion_and_small_where_space_is_crushed()
 
 def test_bare_skeleton_capture_gets_a_hull_prior_around_its_posed_truth(tmp_path):
     """Anny's joints without a template: the prior comes from the masks and holds the subject."""
-    from stages.canonical_eval import canonical_truth
+    from igavatar.avatar.canonical_report import canonical_truth
+    from igavatar.avatar.subject import SubjectArrays
 
     run_synth(SynthOptions(out=tmp_path / "capture", resolution=96, train_frames=10, test_frames=0, skeleton="bare", seed=5))
     run_preprocess(PreprocessOptions(capture=tmp_path / "capture", out=tmp_path / "dataset", max_size=96))
     data = read_artifact(tmp_path / "dataset", expected="dataset")
     assert data["data"]["shape_prior"] == "visual_hull" and data["config"]["hull_prior"]["version"] >= 2
     prior = trimesh.load(tmp_path / "dataset" / "template.ply", process=False)
-    with np.load(tmp_path / "dataset" / "subject.npz") as arrays:
-        subject = {key: arrays[key] for key in arrays.files}
-    vertices, faces = canonical_truth(tmp_path / "capture", subject)
+    vertices, faces = canonical_truth(tmp_path / "capture", SubjectArrays.read(tmp_path / "dataset" / "subject.npz"))
     truth = trimesh.Trimesh(vertices, faces, process=False)
     assert prior.is_watertight and truth.volume < prior.volume < 3.5 * truth.volume
     points = vertices[np.random.default_rng(0).choice(len(vertices), 2000, replace=False)]

@@ -151,9 +151,9 @@ def test_preprocess_undistorts_and_keeps_the_joints(subject, tmp_path):
     assert np.array_equal(got_mask, want_mask) and np.array_equal(got_rgb, want_rgb)
     assert np.abs(got_rgb.astype(int) - image).max() > 20, "the image was not undistorted"
     # Undistorted, the joints project into the subject's mask.
-    from igavatar.capture.images import project_points
+    from igavatar.geometry.projection import project_points
 
-    uv = project_points(frames["K"][3].astype(np.float64), frames["w2c"][3].astype(np.float64), world_joints["frame_000003"])
+    uv, _ = project_points(frames["K"][3].astype(np.float64), frames["w2c"][3].astype(np.float64), world_joints["frame_000003"])
     inside = got_mask[np.clip(np.round(uv[:, 1]).astype(int), 0, SIZE - 1), np.clip(np.round(uv[:, 0]).astype(int), 0, SIZE - 1)]
     assert inside.mean() > 0.9
 

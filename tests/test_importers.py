@@ -287,7 +287,7 @@ def test_xhumans_masks_come_from_the_depth_renders(tmp_path):
 
 
 def test_xhumans_scans_are_read_by_eval(tmp_path):
-    from stages.eval import load_scan, match_scans
+    from igavatar.capture.scans import load_scan, match_scans
 
     root = tmp_path / "00036"
     write_xhumans(root)
@@ -385,7 +385,7 @@ def test_preprocess_reads_a_peoplesnapshot_subject(tmp_path, cli_runner, smpl_mo
 
 def test_preprocess_reads_an_xhumans_subject_and_eval_finds_its_scans(tmp_path, cli_runner, smpl_model_file):
     from igavatar.artifacts.manifest import read_artifact
-    from stages.eval import default_gt_dir, match_scans
+    from igavatar.capture.scans import default_gt_dir, match_scans
 
     root = tmp_path / "00036"
     write_xhumans(root)

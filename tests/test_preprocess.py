@@ -14,7 +14,8 @@ import torch
 from igavatar.artifacts.manifest import read_artifact
 from igavatar.body.skeleton import linear_blend_skinning
 from igavatar.capture.capture_v1 import read_capture_v1
-from igavatar.capture.images import project_points, scale_intrinsics
+from igavatar.capture.images import scale_intrinsics
+from igavatar.geometry.projection import project_points
 from igavatar.skinning.grid import sample_skinning_weights
 from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
@@ -63,7 +64,7 @@ def test_bone_transforms_and_grid_weights_reproduce_the_body_model(small_run):
     assert error.median() < 2e-3 and error.quantile(0.95) < 2e-2, (error.median(), error.quantile(0.95))
     boxes = torch.tensor(frames["posed_boxes"])
     assert torch.all(expected >= boxes[:, None, 0] - 1e-3) and torch.all(expected <= boxes[:, None, 1] + 1e-3)
-    joints_uv = project_points(frames["K"][0].astype(np.float64), frames["w2c"][0].astype(np.float64), frames["posed_joints"][0].astype(np.float64))
+    joints_uv, _ = project_points(frames["K"][0].astype(np.float64), frames["w2c"][0].astype(np.float64), frames["posed_joints"][0].astype(np.float64))
     assert np.all((joints_uv > 0) & (joints_uv < 64)), "skeleton projects outside the image"
 
 
@@ -142,7 +143,7 @@ def test_capture_without_masks_gets_grabcut_masks_close_to_the_true_ones(small_r
     for i, frame in enumerate(frames):
         rgb = cv2.cvtColor(cv2.imread(str(out / "images" / f"{frame}.png")), cv2.COLOR_BGR2RGB)
         mask = cv2.imread(str(out / "masks" / f"{frame}.png"), cv2.IMREAD_GRAYSCALE) > 127
-        uv = project_points(stored["K"][i].astype(np.float64), stored["w2c"][i].astype(np.float64), stored["posed_joints"][i].astype(np.float64))
+        uv, _ = project_points(stored["K"][i].astype(np.float64), stored["w2c"][i].astype(np.float64), stored["posed_joints"][i].astype(np.float64))
         items.append((rgb, mask, uv, f"{frame} (est.)"))
     written = cv2.cvtColor(cv2.imread(str(out / "contact_sheet.png")), cv2.COLOR_BGR2RGB)
     assert np.mean(np.any(written != contact_sheet(items, parents), axis=-1)) < 1e-3

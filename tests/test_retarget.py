@@ -17,7 +17,7 @@ from igavatar.body.retarget import (
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton, forward_kinematics
 from igavatar.errors import NotAvailableError
-from igavatar.mesh.pose_files import read_pose_sequence, sequence_local_pose
+from igavatar.body.pose_files import read_pose_sequence, sequence_local_pose
 
 SMPL_TO_ANNY = body_to_world("anny") @ body_to_world("smpl").T  # SMPL world axes -> Anny's
 

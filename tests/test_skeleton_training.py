@@ -83,7 +83,7 @@ def test_dataset_has_a_capsule_prior_around_the_skeleton(skeleton_run, small_run
 
 
 def test_tiny_training_learns_and_the_sdf_has_a_body_inside_the_capsules(skeleton_run):
-    from stages.model_io import load_model
+    from igavatar.avatar.model import load_model
 
     manifest = read_artifact(skeleton_run / "model", expected="model")
     assert manifest["data"]["body_model"] == "skeleton" and manifest["data"]["steps"] == 16
@@ -95,11 +95,11 @@ def test_tiny_training_learns_and_the_sdf_has_a_body_inside_the_capsules(skeleto
     model = load_model(skeleton_run / "model")
     subject = model.subject
     with torch.no_grad():
-        sdf_inside, _ = model.avatar.sdf_field(torch.tensor(subject["canonical_joints"][subject["init_bones"]], dtype=torch.float32))
-        box = torch.tensor(subject["canonical_box"], dtype=torch.float32)
+        sdf_inside, _ = model.avatar.sdf_field(torch.tensor(subject.canonical_joints[subject.init_bones], dtype=torch.float32))
+        box = torch.tensor(subject.canonical_box, dtype=torch.float32)
         corners = torch.stack(torch.meshgrid(*[box[:, a] for a in range(3)], indexing="ij"), dim=-1).reshape(-1, 3)
         sdf_corners, _ = model.avatar.sdf_field(corners)
     # Tiny trains 5 shape-init and 16 photometric steps: the body is rough, but the root is inside
     # and the box's corners outside, so there is a surface between them.
-    assert float(sdf_inside[0]) < 0 and int(subject["init_bones"][0]) == 0, sdf_inside
+    assert float(sdf_inside[0]) < 0 and int(subject.init_bones[0]) == 0, sdf_inside
     assert bool((sdf_corners > 0).all()), sdf_corners

@@ -26,7 +26,8 @@ from igavatar.synth.garments import (
     loop_subdivision,
     self_intersecting_faces,
 )
-from igavatar.synth.raycast import CameraRays, MeshRayCaster, project_points, render_mesh
+from igavatar.geometry.projection import project_points
+from igavatar.geometry.raycast import CameraRays, MeshRayCaster, render_mesh
 from igavatar.synth.scene import frame_static_camera, look_w2c, yaw_about_vertical
 from igavatar.synth.texture import make_texture
 from stages.synth import (
@@ -128,7 +129,7 @@ def test_scans_reproject_onto_masks(capture):
     meta = read_capture_v1(out)
     for i, frame in enumerate(meta.frames):
         scan = trimesh.load(meta.scans[frame], process=False)
-        x_pixels, z = project_points(np.asarray(scan.vertices), meta.K[i], meta.w2c[i])
+        x_pixels, z = project_points(meta.K[i], meta.w2c[i], np.asarray(scan.vertices))
         assert np.all(z > 0)
         mask_ref = rasterise_coverage(x_pixels, np.asarray(scan.faces), meta.height, meta.width, s=2) > 0.5
         mask = load_mask(meta.mask_path(frame), (meta.height, meta.width))
@@ -268,7 +269,7 @@ def test_ray_caster_pixel_convention_depth_and_barycentrics():
 def test_static_camera_frames_points_level_and_from_the_front():
     points = np.random.default_rng(0).uniform([-0.5, -0.2, -0.9], [0.5, 0.2, 0.9], size=(500, 3))
     K, w2c = frame_static_camera(points, 120, 100, distance=3.0, margin=0.1)
-    x_pixels, z = project_points(points, K, w2c)
+    x_pixels, z = project_points(K, w2c, points)
     assert np.all(z > 2.0) and np.all(z < 4.0)
     # Principal point at the image centre ((W - 1) / 2, (H - 1) / 2); 10% free border on each side,
     # reached on at least one side.

@@ -15,16 +15,17 @@ from igavatar.training.checkpoint import flatten, load_state, save_state
 from igavatar.training.config import preset
 from igavatar.training.trainer import Trainer
 from igavatar_cli.main import app
-from stages.train import TrainOptions, build_avatar, load_training_data, resolve_config, run_train
+from igavatar.avatar.dataset import read_dataset, training_data
+from igavatar.avatar.model import build_avatar
+from stages.train import TrainOptions, resolve_config, run_train
 
 
 def _trainer(dataset: Path, **overrides) -> Trainer:
-    manifest = read_artifact(dataset, expected="dataset")
+    artifact = read_dataset(dataset)
     config = dataclasses.replace(preset("tiny"), **overrides)
     torch.manual_seed(config.seed)
-    subject = dict(np.load(dataset / "subject.npz"))
-    avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
-    return Trainer(config, load_training_data(dataset, manifest), avatar)
+    avatar = build_avatar(config, artifact.subject, artifact.data["pose_dim"])
+    return Trainer(config, training_data(artifact), avatar)
 
 
 def test_tiny_training_writes_a_valid_model_artifact(tiny_model):
@@ -93,10 +94,10 @@ def test_ablation_regularisers_train(small_run, regularizer):
     from igavatar.training.config import with_overrides
 
     config = with_overrides(dataclasses.replace(preset("tiny"), steps=8), regularizer=regularizer)
-    manifest = read_artifact(small_run / "dataset", expected="dataset")
+    dataset = read_dataset(small_run / "dataset")
     torch.manual_seed(0)
-    avatar = build_avatar(config, dict(np.load(small_run / "dataset" / "subject.npz")), manifest["data"]["pose_dim"])
-    trainer = Trainer(config, load_training_data(small_run / "dataset", manifest), avatar)
+    avatar = build_avatar(config, dataset.subject, dataset.data["pose_dim"])
+    trainer = Trainer(config, training_data(dataset), avatar)
     logs = [trainer.train_step() for _ in range(2)]
     expected = {"none": {"eikonal"}, "fd-eikonal": {"fd_eikonal"}, "curvature": {"eikonal", "curvature"},
                 "fd-eikonal+curvature": {"fd_eikonal", "curvature"}, "hybrid-pe": {"eikonal"}}[regularizer]
@@ -147,8 +148,7 @@ def test_loaded_model_poses_like_the_dataset_and_mesh_vertices_map_back(small_ru
     canonical mesh vertex and canonicalising it again gives the vertex back."""
     from igavatar.body.anny_body import AnnyBody
     from igavatar.capture.capture_v1 import read_capture_v1
-    from igavatar.mesh.posing import pose_canonical_vertices
-    from stages.model_io import load_model
+    from igavatar.avatar.model import load_model
 
     model = load_model(tiny_model)
     weights = load_state(tiny_model / "weights.npz")["avatar"]
@@ -166,8 +166,9 @@ def test_loaded_model_poses_like_the_dataset_and_mesh_vertices_map_back(small_ru
     import trimesh
 
     x_canonical = np.asarray(trimesh.load(small_run / "dataset" / "template.ply", process=False).vertices)[::50]
-    frame = model.avatar.deformer.prepare(posed.bone_transforms[-1])
-    x_posed = pose_canonical_vertices(model.avatar, x_canonical, frame, posed.pose_condition[-1])
+    posed_avatar = model.posed(posed.bone_transforms[-1], posed.pose_condition[-1])
+    frame = posed_avatar.frame
+    x_posed = posed_avatar.pose_vertices(x_canonical)
     candidates, valid = model.avatar.deformer.canonicalize(torch.from_numpy(x_posed), frame)
     with torch.no_grad():  # the rigid root plus the non-rigid offset is the canonical surface point
         offset = model.avatar.offset_points(candidates.reshape(-1, 3), posed.pose_condition[-1]).reshape(candidates.shape)
@@ -202,10 +203,10 @@ def test_mlp_only_sdf_trains_without_a_hash_table(small_run):
     from igavatar.training.config import with_overrides
 
     config = with_overrides(dataclasses.replace(preset("tiny"), steps=4), sdf_encoding="mlp")
-    manifest = read_artifact(small_run / "dataset", expected="dataset")
+    dataset = read_dataset(small_run / "dataset")
     torch.manual_seed(0)
-    avatar = build_avatar(config, dict(np.load(small_run / "dataset" / "subject.npz")), manifest["data"]["pose_dim"])
-    trainer = Trainer(config, load_training_data(small_run / "dataset", manifest), avatar)
+    avatar = build_avatar(config, dataset.subject, dataset.data["pose_dim"])
+    trainer = Trainer(config, training_data(dataset), avatar)
     assert trainer.optimizer.param_groups[0]["params"] == []  # the hash-table group is empty
     before = [p.detach().clone() for p in trainer.avatar.sdf_field.parameters()]
     logs = [trainer.train_step() for _ in range(2)]
@@ -248,9 +249,8 @@ def test_free_space_term_trains_and_new_options_are_checked(small_run, cli_runne
     config = preset("tiny")
     config = dataclasses.replace(config, steps=3, loss_weights=dataclasses.replace(config.loss_weights, free_space=1.0),
                                  hull_in_occupancy=True)
-    manifest = read_artifact(small_run / "dataset", expected="dataset")
-    subject = dict(np.load(small_run / "dataset" / "subject.npz"))
-    trainer = Trainer(config, load_training_data(small_run / "dataset", manifest), build_avatar(config, subject, manifest["data"]["pose_dim"]))
+    dataset = read_dataset(small_run / "dataset")
+    trainer = Trainer(config, training_data(dataset), build_avatar(config, dataset.subject, dataset.data["pose_dim"]))
     assert trainer.hull is not None and 0.0 < trainer.hull.occupied_fraction < 1.0
     logs = [trainer.train_step() for _ in range(3)]
     assert all("free_space" in log and np.isfinite(log["free_space"]) for log in logs)

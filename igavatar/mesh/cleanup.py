@@ -14,11 +14,10 @@ from typing import Any
 
 import numpy as np
 import pymeshlab
-import scipy.sparse
-import scipy.sparse.csgraph
 import trimesh
 
 from igavatar.errors import InputError
+from igavatar.geometry.mesh_ops import connected_components, vertex_normals  # noqa: F401 (re-exported)
 
 
 def _check_mesh(vertices: Any, faces: Any, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -37,28 +36,6 @@ def _check_mesh(vertices: Any, faces: Any, what: str) -> tuple[np.ndarray, np.nd
     if not np.all(np.isfinite(v)):
         raise InputError(f"{what}: vertices contain NaN or infinite values")
     return v, f
-
-
-def connected_components(num_vertices: int, faces: np.ndarray) -> np.ndarray:
-    """Component label (F,) int64 of every face; faces sharing a vertex share a component.
-
-    Labels are ordered by decreasing face count (0 = the largest component).
-    """
-    if faces.shape[0] == 0:
-        return np.zeros(0, dtype=np.int64)
-    rows = np.concatenate((faces[:, 0], faces[:, 1]))
-    cols = np.concatenate((faces[:, 1], faces[:, 2]))
-    graph = scipy.sparse.coo_matrix(
-        (np.ones(rows.shape[0], dtype=np.int8), (rows, cols)), shape=(num_vertices, num_vertices)
-    )
-    _, vertex_label = scipy.sparse.csgraph.connected_components(graph, directed=False)
-    face_label = vertex_label[faces[:, 0]]
-    # Relabel by size, largest first (ties by old label, so the result is deterministic).
-    sizes = np.bincount(face_label)
-    order = np.lexsort((np.arange(sizes.shape[0]), -sizes))
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.shape[0])
-    return rank[face_label].astype(np.int64)
 
 
 def _to_meshset(vertices: np.ndarray, faces: np.ndarray) -> pymeshlab.MeshSet:
@@ -194,21 +171,3 @@ def is_watertight(vertices: np.ndarray, faces: np.ndarray) -> bool:
         return False
     mesh = trimesh.Trimesh(v, f, process=False)
     return bool(mesh.is_watertight and mesh.is_winding_consistent)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals (V, 3) float32; zero for vertices in no (non-degenerate) face."""
-    v, f = _check_mesh(vertices, faces, "vertex_normals")
-    # The cross product's length is twice the face area, so summing it weights faces by area.
-    face_normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    corners = f.reshape(-1)
-    normals = np.stack(
-        [
-            np.bincount(corners, weights=np.repeat(face_normals[:, axis], 3), minlength=v.shape[0])
-            for axis in range(3)
-        ],
-        axis=1,
-    )
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
-    return normals.astype(np.float32)

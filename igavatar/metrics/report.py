@@ -8,7 +8,7 @@ Every metric is declared once in ``METRICS`` with its protocol, units, coordinat
 background (EVAL.md: a number that does not say these cannot be compared with another report).
 Plots are drawn with OpenCV (matplotlib is not a dependency). The error-coloured mesh panel ray
 casts the posed prediction and the scan from the test camera with Embree
-(``igavatar.synth.raycast``) and colours the prediction by its distance to the scan.
+(``igavatar.geometry.raycast``) and colours the prediction by its distance to the scan.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from igavatar.errors import InputError
-from igavatar.synth.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
+from igavatar.geometry.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
 
 __all__ = [
     "MetricSpec",

@@ -21,11 +21,11 @@ from typing import Literal, get_args
 import numpy as np
 import pymeshlab
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from igavatar.errors import BodyModelError, InputError
-from igavatar.synth.raycast import MeshRayCaster
+from igavatar.geometry.mesh_ops import largest_component, vertex_normals
+from igavatar.geometry.raycast import MeshRayCaster
 
 Garment = Literal["shirt-trousers", "dress", "tight"]
 GARMENTS: tuple[str, ...] = get_args(Garment)
@@ -122,23 +122,6 @@ class ClothedSubject:
 # Mesh helpers (numpy / scipy; all operate on a vertex array and an (F, 3) face array)
 
 
-def largest_component(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the connected component with the most vertices (Anny's eyes and teeth are separate shells).
-
-    Returns:
-        kept: (V',) indices of the kept vertices into the input; faces: (F', 3) re-indexed faces.
-    """
-    adjacency = _adjacency(faces, num_vertices)
-    _, labels = connected_components(adjacency, directed=False)
-    biggest = np.argmax(np.bincount(labels))
-    kept = np.flatnonzero(labels == biggest)
-    remap = np.full(num_vertices, -1, dtype=np.int64)
-    remap[kept] = np.arange(kept.size)
-    kept_faces = remap[faces]
-    kept_faces = kept_faces[(kept_faces >= 0).all(axis=1)]
-    return kept, kept_faces
-
-
 def _adjacency(faces: np.ndarray, num_vertices: int) -> sp.csr_matrix:
     """(V, V) symmetric 0/1 vertex adjacency from the face edges."""
     i = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
@@ -161,16 +144,6 @@ def diffuse(values: np.ndarray, average: sp.csr_matrix, iterations: int, rate: f
     for _ in range(iterations):
         out = (1.0 - rate) * out + rate * (average @ out)
     return out
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals (outward for outward-facing faces)."""
-    tri = vertices[faces]
-    face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_normals)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
 
 def self_intersecting_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -32,13 +32,6 @@ class SdfSamples:
     sdf: torch.Tensor  # (P,)
 
 
-def largest_component(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
-    """The connected component with the most faces (drops eyes, teeth and other inner shells)."""
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
-    parts = mesh.split(only_watertight=False)
-    return max(parts, key=lambda m: len(m.faces)) if len(parts) > 1 else mesh
-
-
 def template_sdf_samples(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -60,7 +53,11 @@ def template_sdf_samples(
         SdfSamples on CPU, float32.
     """
     rng = np.random.default_rng(seed)
-    mesh = largest_component(vertices, faces)
+    # The body without eyes, teeth and other inner shells. trimesh's split (not
+    # igavatar.geometry.mesh_ops.largest_component) because surface sampling depends on the face
+    # order it produces, and the fits cached and benchmarked so far were made with it.
+    parts = trimesh.Trimesh(vertices, faces, process=False).split(only_watertight=False)
+    mesh = max(parts, key=lambda m: len(m.faces))
     surface, _ = trimesh.sample.sample_surface(mesh, 300_000, seed=seed)
     n_near = int(n_points * near_fraction)
     near = surface[rng.integers(0, len(surface), n_near)] + rng.normal(0.0, near_std, (n_near, 3))

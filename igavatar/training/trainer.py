@@ -14,7 +14,6 @@ resumed run continues exactly.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections import OrderedDict
@@ -35,7 +34,7 @@ from igavatar.model.losses import (
     smooth_loss_neighbour_rays,
     total_loss,
 )
-from igavatar.model.posed_occupancy import posed_occupancy
+from igavatar.model.posed import PosedAvatar
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.occupancy import OccupancyGrid
 from igavatar.render.rays import pixel_rays, rays_in_box
@@ -205,12 +204,9 @@ class Trainer:
         self._apply_schedule()
 
         index = int(data.train_indices[torch.randint(0, len(data.train_indices), (1,), generator=self.generator)])
-        frame = self.prepared_frame(index)
-        pose = data.pose_condition[index].to(device)
+        posed = PosedAvatar(self.avatar, self.prepared_frame(index), data.pose_condition[index].to(device))
         posed_box = data.posed_boxes[index].to(device)
-        posed_grid = posed_occupancy(
-            self.canonical_grid, self.avatar.deformer, frame, posed_box, config.occupancy_resolution
-        )
+        posed_grid = posed.occupancy(self.canonical_grid, posed_box, config.occupancy_resolution)
 
         pixels = sample_patch_pixels(
             data.mask_pixels(index), data.image_size, self._patches_per_step, config.patch_size,
@@ -230,23 +226,17 @@ class Trainer:
         )
 
         # Map every kept posed sample to canonical space once; samples without a root are empty.
-        x_rigid, found = self.avatar.correspond(samples.valid_positions(), frame, pose)
-        valid = samples.valid.clone()
-        valid[samples.valid] = found
-        x_rigid = x_rigid[found]
-        positions = torch.zeros_like(samples.positions)
-        positions[valid] = x_rigid
-        canonical_samples = dataclasses.replace(samples, positions=positions, valid=valid)
+        canonical_samples, x_rigid = posed.canonical_samples(samples)
 
         noise_std = config.sigma_noise_std if self.step < config.sigma_noise_steps else 0.0
         field_generator = torch.Generator(device=device).manual_seed(self.step + 1)
 
         def field_fn(x_canonical: torch.Tensor):
-            return self.avatar.field_at(x_canonical, pose, sigma_noise_std=noise_std, generator=field_generator)
+            return posed.fields_at(x_canonical, sigma_noise_std=noise_std, generator=field_generator)
 
         out = render_rays(canonical_samples, field_fn, background)
         terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
-        terms.update(self._regulariser_terms(out, canonical_samples, x_rigid, pose))
+        terms.update(self._regulariser_terms(out, canonical_samples, x_rigid, posed.pose))
         if self.hull is not None and config.loss_weights.free_space > 0:
             terms["free_space"] = self._free_space_term()
         loss = total_loss(terms, config.loss_weights)
@@ -259,7 +249,7 @@ class Trainer:
             self.optimizer.step()
         self.step += 1
 
-        num_samples = int(valid.sum())
+        num_samples = int(canonical_samples.valid.sum())
         self.samples_seen += num_samples
         self.rays_seen += rays.num_rays
         elapsed = time.perf_counter() - started

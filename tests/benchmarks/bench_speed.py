@@ -60,7 +60,8 @@ from igavatar.training.checkpoint import load_state  # noqa: E402
 from igavatar.training.config import preset, with_overrides  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
 from stages.resources import peak_ram_bytes, tune_host_allocator  # noqa: E402
-from stages.train import build_avatar, load_training_data  # noqa: E402
+from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+from igavatar.avatar.model import build_avatar  # noqa: E402
 
 COMPONENTS = ("root finding", "hash grid", "MLPs", "renderer", "losses", "backward", "optimiser", "occupancy", "other")
 
@@ -138,16 +139,15 @@ def training_profile(
     (0: the rigid first half; 0.8: the non-rigid MLP on, the VolSDF beta capped). With
     `from_model`, the weights and occupancy grid are a trained model's: a trained surface keeps
     far fewer samples per ray than the initial sphere, which is what a real run spends most steps on."""
-    manifest = read_artifact(dataset, expected="dataset")
-    subject = dict(np.load(dataset / "subject.npz"))
-    data = load_training_data(dataset, manifest)
+    artifact = read_dataset(dataset)
+    data = training_data(artifact)
     config = with_overrides(dataclasses.replace(preset("cpu"), shape_init_steps=0))
     trainers: dict[str, Trainer] = {}
     profiler = Profiler()
     for name, enabled in (("reference", False), ("fast", True)):
         set_kernels_enabled(enabled)
         torch.manual_seed(0)
-        avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
+        avatar = build_avatar(config, artifact.subject, artifact.data["pose_dim"])
         trainers[name] = Trainer(config, data, avatar, device)
         if from_model is not None:
             weights = load_state(from_model / "weights.npz")

@@ -32,7 +32,9 @@ from igavatar.training.trainer import Trainer  # noqa: E402
 from stages.preprocess import PreprocessOptions, run_preprocess  # noqa: E402
 from stages.resources import peak_ram_bytes  # noqa: E402
 from stages.synth import SynthOptions, run_synth  # noqa: E402
-from stages.train import TrainOptions, build_avatar, load_training_data, run_train  # noqa: E402
+from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+from igavatar.avatar.model import build_avatar  # noqa: E402
+from stages.train import TrainOptions, run_train  # noqa: E402
 
 
 def ensure_dataset(run_dir: Path) -> Path:
@@ -60,14 +62,13 @@ def full_run(dataset: Path, out: Path, preset_name: str, steps: int | None, devi
 
 def regulariser_costs(dataset: Path, preset_name: str, warmup: int, measured: int, device: str) -> list[dict]:
     """Mean step time of each regulariser, interleaved step by step over the variants."""
-    manifest = read_artifact(dataset, expected="dataset")
-    subject = dict(np.load(dataset / "subject.npz"))
-    data = load_training_data(dataset, manifest)
+    artifact = read_dataset(dataset)
+    data = training_data(artifact)
     trainers = {}
     for name in REGULARIZERS:
         config = with_overrides(dataclasses.replace(preset(preset_name), steps=10_000, shape_init_steps=0), regularizer=name)
         torch.manual_seed(0)
-        avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
+        avatar = build_avatar(config, artifact.subject, artifact.data["pose_dim"])
         trainers[name] = Trainer(config, data, avatar, device)
     times: dict[str, list[float]] = {name: [] for name in trainers}
     samples: dict[str, list[int]] = {name: [] for name in trainers}

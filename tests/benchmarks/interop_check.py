@@ -39,9 +39,10 @@ sys.path.insert(0, str(REPO))
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
 from igavatar.mesh.gltf import read_rigged_glb  # noqa: E402
 from igavatar.mesh.texture import sample_texture  # noqa: E402
-from igavatar.synth.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values  # noqa: E402
+from igavatar.geometry.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values  # noqa: E402
 from stages.animate import AnimateOptions, run_animate  # noqa: E402
-from stages.export import ExportOptions, frontal_camera, run_export  # noqa: E402
+from igavatar.mesh.maps import frontal_camera  # noqa: E402
+from stages.export import ExportOptions, run_export  # noqa: E402
 
 PROBE = Path(__file__).with_name("blender_probe.py")
 VALIDATE_JS = """
@@ -170,10 +171,8 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
     views, for the full vertex-coloured posed mesh (posed/<frame>.ply) and for the textured decimated
     mesh posed the same way (igavatar's posing, so only the texture differs), both ray cast with the
     capture's camera. Acceptance: the textured mesh within 1.5 dB of the full one."""
-    from igavatar.mesh.pose_files import read_pose_sequence, sequence_local_pose
-    from igavatar.mesh.posing import pose_canonical_vertices
-    from stages.export import _model_skeleton
-    from stages.model_io import load_model
+    from igavatar.body.pose_files import read_pose_sequence, sequence_local_pose
+    from igavatar.avatar.model import load_model
 
     meta = json.loads((capture / "capture.json").read_text())
     frames = [f["name"] if isinstance(f, dict) else f for f in meta["frames"]]
@@ -187,8 +186,7 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
     views = [train[round(i * len(train) / 4)] for i in range(4)]  # the training turn: front, side, back, side
     sequence = read_pose_sequence(capture)
     phenotype = model.manifest["data"].get("subject", {}).get("phenotype")
-    rotations, translation = sequence_local_pose(sequence, _model_skeleton(model), model.manifest["data"]["body_model"],
-                                                 phenotype=phenotype)
+    rotations, translation = sequence_local_pose(sequence, model.skeleton, model.body_model, phenotype=phenotype)
     posed = model.pose(rotations, translation)
     for name in views:
         index = frames.index(name)
@@ -206,8 +204,7 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
         colours = np.asarray(full.visual.vertex_colors)[:, :3] / 255.0
         render_full = np.where(hits.hit[:, None], interpolate_vertex_values(colours, np.asarray(full.faces), hits), 0.0)
 
-        frame = model.avatar.deformer.prepare(posed.bone_transforms[index])
-        x_posed = pose_canonical_vertices(model.avatar, canonical_textured, frame, posed.pose_condition[index])
+        x_posed = model.posed(posed.bone_transforms[index], posed.pose_condition[index]).pose_vertices(canonical_textured)
         hits = MeshRayCaster(x_posed, glb["faces"]).first_hits(origins, directions)
         uv = interpolate_vertex_values(glb["uv"], glb["faces"], hits)
         render_tex = np.where(hits.hit[:, None], sample_texture(texture, uv), 0.0)

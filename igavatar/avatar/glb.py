@@ -5,7 +5,7 @@
 
 Joint names, parents and the canonical joints (the bind pose) come from the model's subject;
 the file is in glTF's +Y-up frame (`gltf_axes` of the model's body model, baked in); a motion
-given relative to the skeleton's rest pose (as forward kinematics and `LoadedModel.pose` take
+given relative to the skeleton's rest pose (as forward kinematics and `ModelArtifact.pose` take
 it) is re-expressed relative to the canonical bind pose first.
 """
 
@@ -17,12 +17,12 @@ import numpy as np
 import torch
 
 from igavatar.mesh.gltf import gltf_axes, pose_relative_to_canonical, write_rigged_glb
-from stages.model_io import LoadedModel
+from igavatar.avatar.model import ModelArtifact
 
 
 def write_model_glb(
     path: Path,
-    model: LoadedModel,
+    model: ModelArtifact,
     vertices: np.ndarray,
     faces: np.ndarray,
     colors: np.ndarray,
@@ -43,20 +43,20 @@ def write_model_glb(
         {"joints", "influences", "animation_frames", "fps", "up_axis", "world_to_gltf"}.
     """
     subject = model.subject
-    parents = np.asarray(subject["parents"], dtype=np.int64)
-    axes = gltf_axes(model.manifest["data"]["body_model"])
+    parents = np.asarray(subject.parents, dtype=np.int64)
+    axes = gltf_axes(model.body_model)
     animation = None
     if motion is not None:
         rotations, translation, fps = motion
         # GLB node rotations are relative to the bind (canonical) pose.
         relative, offset = pose_relative_to_canonical(
             rotations.double().cpu().numpy(), translation.double().cpu().numpy(),
-            subject["canonical_rotations"], np.zeros(3), parents,
+            subject.canonical_rotations, np.zeros(3), parents,
         )
         animation = (relative, offset, float(fps))
     write_rigged_glb(
         path, vertices, faces, colors, model.joint_names, parents,
-        np.asarray(subject["canonical_joints"], dtype=np.float64), skin_weights,
+        np.asarray(subject.canonical_joints, dtype=np.float64), skin_weights,
         world_to_gltf=axes, animation=animation, influences=influences, texture=texture,
     )
     return {

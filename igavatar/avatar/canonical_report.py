@@ -1,9 +1,9 @@
-"""The canonical-shape part of `igavatar eval`: gathers the dataset's template, skeleton and (for a
+"""The canonical-shape section of an eval report: gathers the dataset's template, skeleton and (for a
 synthetic capture) the true clothed surface, and asks `igavatar.metrics.canonical` about the
 predicted canonical mesh: is every limb there, is the gap between the legs empty, how close is it
 to the truth.
 
-    section, image = canonical_section(dataset_dir, dataset_manifest, capture_dir, (v, f), n_iou=200_000)
+    section, image = canonical_section(read_dataset(dataset_dir), capture_dir, (v, f), n_iou=200_000)
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from igavatar.metrics.canonical import (
     limb_labels,
     rest_to_canonical_transforms,
 )
+from igavatar.avatar.dataset import DatasetArtifact
+from igavatar.avatar.subject import SubjectArrays
 from igavatar.metrics.report import canonical_views_image
 from igavatar.skinning.grid import sample_grid
 
@@ -31,27 +33,21 @@ from igavatar.skinning.grid import sample_grid
 NAMED_SKELETONS = ("anny", "smpl")
 
 
-def _skeleton_kind(dataset_manifest: dict) -> str | None:
-    kind = dataset_manifest["data"].get("body_model")
-    return kind if kind in NAMED_SKELETONS else None
-
-
-def canonical_truth(capture_dir: Path | None, subject: dict) -> tuple[np.ndarray, np.ndarray] | None:
+def canonical_truth(capture_dir: Path | None, subject: SubjectArrays) -> tuple[np.ndarray, np.ndarray] | None:
     """The true clothed surface in the dataset's canonical pose, when the capture has it."""
     path = None if capture_dir is None else Path(capture_dir) / REST_SURFACE_FILE
     if path is None or not path.is_file():
         return None
     with np.load(path) as rest:
-        if int(rest["weights_index"].max()) >= len(subject["parents"]):
+        if int(rest["weights_index"].max()) >= subject.n_joints:
             return None  # the capture's skeleton is not the one the truth is skinned to (a lone root)
-        transforms = rest_to_canonical_transforms(subject["rest_joints"], subject["parents"], subject["canonical_rotations"])
+        transforms = rest_to_canonical_transforms(subject.rest_joints, subject.parents, subject.canonical_rotations)
         vertices = canonical_from_rest(rest["vertices"], rest["weights_index"], rest["weights_value"], transforms)
         return vertices, np.asarray(rest["faces"], np.int64)
 
 
 def canonical_section(
-    dataset_dir: Path,
-    dataset_manifest: dict,
+    dataset: DatasetArtifact,
     capture_dir: Path | None,
     pred: tuple[np.ndarray, np.ndarray],
     n_iou: int = 200_000,
@@ -62,32 +58,31 @@ def canonical_section(
     The limb check needs the template's vertices grouped by body part, so it runs for body models
     with named joints (Anny, SMPL); a bare skeleton gets the comparison with the truth only.
     """
-    template_path = dataset_dir / "template.ply"
+    template_path = dataset.path / "template.ply"
     if not template_path.is_file():
         return None, None
     template = trimesh.load(template_path, process=False)
     template_v, template_f = np.asarray(template.vertices, np.float64), np.asarray(template.faces, np.int64)
-    with np.load(dataset_dir / "subject.npz") as arrays:
-        subject = {key: arrays[key] for key in arrays.files}
+    subject = dataset.subject
     truth = canonical_truth(capture_dir, subject)
-    kind = _skeleton_kind(dataset_manifest)
-    joint_names = [str(n) for n in subject["joint_names"]]
+    kind = dataset.body_model if dataset.body_model in NAMED_SKELETONS else None
+    joint_names = list(subject.joint_names)
     labels = np.full(len(template_v), -1, np.int64)
     gap = None
-    if kind is not None and dataset_manifest["data"].get("shape_prior", "template") == "template":
-        weights = sample_grid(torch.from_numpy(subject["skinning_grid"]).float(), torch.from_numpy(subject["grid_box_min"]).float(),
-                              torch.from_numpy(subject["grid_box_max"]).float(), torch.from_numpy(template_v).float())
+    if kind is not None and dataset.shape_prior == "template":
+        weights = sample_grid(torch.from_numpy(subject.skinning_grid).float(), torch.from_numpy(subject.grid_box_min).float(),
+                              torch.from_numpy(subject.grid_box_max).float(), torch.from_numpy(template_v).float())
         joint_map = dict(semantic_joint_map(kind))
-        labels = limb_labels(subject["parents"], joint_names, joint_map, weights.argmax(dim=1).numpy())
+        labels = limb_labels(subject.parents, joint_names, joint_map, weights.argmax(dim=1).numpy())
         index = {part: joint_names.index(name) for part, name in joint_map.items() if name in joint_names}
         if all(part in index for part in ("left_thigh", "right_thigh", "left_shin", "right_shin")):
-            gap = leg_gap_points(subject["canonical_joints"].astype(np.float64), index)
+            gap = leg_gap_points(subject.canonical_joints.astype(np.float64), index)
     section = canonical_shape_report(pred, (template_v, template_f), labels, gap, truth, n_iou=n_iou, seed=seed)
     section["frame"] = "canonical (the avatar's rest space, metres in, units as in the posed metrics)"
     section["truth"] = "ground_truth/clothed_rest.npz of the capture, posed into the canonical pose" if truth else "not available"
     rows = [("prediction", pred[0], pred[1])]
     if truth is not None:
         rows.append(("truth (clothed)", truth[0], truth[1]))
-    prior = dataset_manifest["data"].get("shape_prior", "template")
+    prior = dataset.shape_prior
     rows.append(({"template": "template (naked)"}.get(prior, f"shape prior ({prior.replace('_', ' ')})"), template_v, template_f))
     return section, canonical_views_image(rows)

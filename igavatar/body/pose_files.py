@@ -54,7 +54,7 @@ _POSES_FILE = "poses.npz"
 
 
 @dataclass(frozen=True)
-class PoseSequence:
+class SourcePoses:
     """A pose sequence as read from a file, in its own skeleton (numpy, float64).
 
     Attributes:
@@ -100,7 +100,7 @@ class PoseSequence:
         article = {"anny": "an Anny", "smpl": "an SMPL", "skeleton": "a bare-skeleton"}[self.skeleton_kind]
         return f"{article} pose sequence ({self.format}, {self.num_joints} joints)"
 
-    def select(self, indices: Sequence[int]) -> "PoseSequence":
+    def select(self, indices: Sequence[int]) -> "SourcePoses":
         """The frames at `indices` (each in [0, N)), in that order; InputError naming the range otherwise."""
         index = np.asarray(list(indices), dtype=np.int64)
         bad = index[(index < 0) | (index >= self.n_frames)]
@@ -208,7 +208,7 @@ def _detect_format(reader: _NpzReader) -> str:
     )
 
 
-def _read_npz(path: Path, frame_names: Sequence[str] | None, fps: float | None) -> PoseSequence:
+def _read_npz(path: Path, frame_names: Sequence[str] | None, fps: float | None) -> SourcePoses:
     reader = _NpzReader(path)
     try:
         return _parse(reader, frame_names, fps)
@@ -216,7 +216,7 @@ def _read_npz(path: Path, frame_names: Sequence[str] | None, fps: float | None) 
         reader.close()
 
 
-def _parse(reader: _NpzReader, frame_names: Sequence[str] | None, fps: float | None) -> PoseSequence:
+def _parse(reader: _NpzReader, frame_names: Sequence[str] | None, fps: float | None) -> SourcePoses:
     path = reader.path
     kind = _detect_format(reader)
     frames = None if frame_names is None else len(frame_names)
@@ -231,7 +231,7 @@ def _parse(reader: _NpzReader, frame_names: Sequence[str] | None, fps: float | N
             labels = reader.strings("phenotype_labels")
             values = reader.array("phenotype_values", (), len(labels))
             phenotype = dict(zip(labels, (float(v) for v in values)))
-        return PoseSequence(path, "anny", "anny", names(parameters.shape[0]), fps,
+        return SourcePoses(path, "anny", "anny", names(parameters.shape[0]), fps,
                             pose_parameters=parameters, phenotype=phenotype)
 
     if kind == "skeleton":
@@ -245,7 +245,7 @@ def _parse(reader: _NpzReader, frame_names: Sequence[str] | None, fps: float | N
         joint_names = reader.strings("joint_names", num_joints) if "joint_names" in reader.keys else None
         # Skeleton validates the tree (one root at 0, parents before children).
         Skeleton(parents.astype(np.int64), rest, joint_names or tuple(f"joint_{j}" for j in range(num_joints)))
-        return PoseSequence(path, "skeleton", "skeleton", names(rotvecs.shape[0]), fps, rotvecs=rotvecs,
+        return SourcePoses(path, "skeleton", "skeleton", names(rotvecs.shape[0]), fps, rotvecs=rotvecs,
                             transl=transl, parents=parents.astype(np.int64), rest_joints=rest, joint_names=joint_names)
 
     if kind == "smpl-split":
@@ -263,12 +263,12 @@ def _parse(reader: _NpzReader, frame_names: Sequence[str] | None, fps: float | N
         values = np.concatenate((poses[:, :_AMASS_BODY_VALUES], hands), axis=1)
         if "mocap_framerate" in reader.keys:
             fps = float(reader.scalar("mocap_framerate"))
-    return PoseSequence(path, kind, "smpl", names(values.shape[0]), fps,
+    return SourcePoses(path, kind, "smpl", names(values.shape[0]), fps,
                         rotvecs=values.reshape(-1, SMPL_JOINTS, 3), transl=transl,
                         parents=np.asarray(SMPL_PARENTS, dtype=np.int64))
 
 
-def _read_capture(root: Path) -> PoseSequence:
+def _read_capture(root: Path) -> SourcePoses:
     meta_path = root / _CAPTURE_FILE
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
@@ -287,7 +287,7 @@ def _read_capture(root: Path) -> PoseSequence:
     return sequence
 
 
-def read_pose_sequence(path: str | Path) -> PoseSequence:
+def read_pose_sequence(path: str | Path) -> SourcePoses:
     """Read a pose sequence file (any of POSE_FORMATS) or a capture v1 directory's poses.
 
     Raises:
@@ -315,7 +315,7 @@ def _skeleton_label(body_model: str, skeleton: Skeleton) -> str:
 
 
 def sequence_local_pose(
-    sequence: PoseSequence,
+    sequence: SourcePoses,
     skeleton: Skeleton,
     body_model: str,
     *,

@@ -18,6 +18,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from igavatar.errors import InputError
+from igavatar.geometry.projection import camera_center, project_points
 
 
 @dataclass(frozen=True)
@@ -104,19 +105,6 @@ def interpolate_vertex_values(values: np.ndarray, faces: np.ndarray, hits: RayHi
     return np.einsum("rk,rkc->rc", hits.barycentric, corners)
 
 
-def camera_center(w2c: np.ndarray) -> np.ndarray:
-    """(3,) world position of the camera centre of a (4, 4) world-to-camera matrix."""
-    return -w2c[:3, :3].T @ w2c[:3, 3]
-
-
-def project_points(x_world: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project (P, 3) world points; returns pixel coordinates (P, 2) and camera depths z (P,)."""
-    x_camera = x_world @ w2c[:3, :3].T + w2c[:3, 3]
-    z = x_camera[:, 2]
-    uvw = x_camera @ K.T
-    return uvw[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[:, None], z
-
-
 class CameraRays:
     """The world-space rays of every sample of an OpenCV pinhole camera, computed once per camera.
 
@@ -198,7 +186,7 @@ def render_mesh(
         a Rendering.
     """
     K, w2c, height, width, s = rays.K, rays.w2c, rays.height, rays.width, rays.supersample
-    x_pixels, z = project_points(caster.vertices, K, w2c)
+    x_pixels, z = project_points(K, w2c, caster.vertices)
     background_rgb = np.asarray(background, dtype=np.float64)
     if np.all(z > 1e-6):
         # Whole mesh in front of the camera: its projection bounds every pixel it can cover.

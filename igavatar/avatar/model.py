@@ -1,0 +1,137 @@
+"""A model artifact (written by `igavatar train`) loaded back into a posable avatar.
+
+    model = load_model(Path("run/model"), device="cpu")
+    model.avatar, model.canonical_grid, model.subject.parents, model.body_model
+    frames = model.pose(local_rotations, root_translation)       # PosedFrames
+    posed = model.posed(frames.bone_transforms[0], frames.pose_condition[0])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from igavatar.artifacts.manifest import read_artifact
+from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
+from igavatar.body.motions import SKELETON_KINDS, body_to_world
+from igavatar.body.skeleton import Skeleton
+from igavatar.capture.subject import PosedFrames, pose_frames
+from igavatar.model.avatar import Avatar
+from igavatar.model.posed import PosedAvatar
+from igavatar.render.occupancy import OccupancyGrid
+from igavatar.training.checkpoint import load_state
+from igavatar.training.config import TrainConfig, config_from_json
+
+
+def build_avatar(config: TrainConfig, subject: SubjectArrays, pose_dim: int) -> Avatar:
+    """A fresh avatar for a subject: its canonical box, skinning grid and root-finding seeds."""
+    return Avatar(
+        config.avatar,
+        canonical_box=torch.from_numpy(subject.canonical_box).float(),
+        skinning_grid=torch.from_numpy(subject.skinning_grid).float(),
+        grid_box_min=torch.from_numpy(subject.grid_box_min).float(),
+        grid_box_max=torch.from_numpy(subject.grid_box_max).float(),
+        pose_dim=pose_dim,
+        init_bones=tuple(int(i) for i in subject.init_bones),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class ModelArtifact:
+    """A trained avatar with everything needed to pose and render it.
+
+    Attributes:
+        path: the model artifact directory; manifest: its manifest.
+        config: the TrainConfig it was trained with.
+        avatar: the Avatar in eval mode, on the requested device.
+        canonical_grid: its canonical occupancy grid.
+        subject: its subject.npz (skeleton, canonical pose, skinning grid).
+    """
+
+    path: Path
+    manifest: dict
+    config: TrainConfig
+    avatar: Avatar
+    canonical_grid: OccupancyGrid
+    subject: SubjectArrays
+
+    @property
+    def data(self) -> dict:
+        return self.manifest["data"]
+
+    @property
+    def body_model(self) -> str:
+        return str(self.data["body_model"])
+
+    @property
+    def pose_dim(self) -> int:
+        return int(self.data["pose_dim"])
+
+    @property
+    def phenotype(self) -> dict | None:
+        """The Anny phenotype the subject was fitted with (None for other body models)."""
+        return self.data.get("subject", {}).get("phenotype")
+
+    @property
+    def joint_names(self) -> list[str]:
+        return list(self.subject.joint_names)
+
+    @property
+    def skeleton(self) -> Skeleton:
+        return self.subject.skeleton
+
+    @property
+    def body_axes(self) -> np.ndarray:
+        """(3, 3) columns: the body's left, up and forward directions in world (bare skeletons: SMPL's)."""
+        return body_to_world(self.body_model if self.body_model in SKELETON_KINDS else "smpl")
+
+    @property
+    def device(self) -> torch.device:
+        return self.avatar.canonical_box.device
+
+    def recorded_dataset(self) -> Path:
+        """The dataset path recorded at training (relative to where `train` ran)."""
+        return Path(self.data["dataset"])
+
+    def trained_dataset(self) -> Path | None:
+        """The dataset it was trained on, if it is still there.
+
+        The recorded path, else a directory of that name beside the model (a run directory moved
+        as a whole, or a relative path recorded where `train` ran).
+        """
+        recorded = self.recorded_dataset()
+        for candidate in (recorded, self.path.parent / recorded.name):
+            if candidate.is_dir():
+                return candidate
+        return None
+
+    def pose(self, local_rotations: torch.Tensor, root_translation: torch.Tensor) -> PosedFrames:
+        """Bone transforms and pose conditioning of local rotations (N, J, 3, 3) relative to the rest pose."""
+        return pose_frames(
+            self.subject.parents, torch.from_numpy(self.subject.rest_joints).float(),
+            torch.from_numpy(self.subject.canonical_rotations).float(), local_rotations.float(),
+            root_translation.float(),
+        )
+
+    def posed(self, bone_transforms: torch.Tensor, pose_condition: torch.Tensor) -> PosedAvatar:
+        """The avatar in one frame: (J, 4, 4) canonical -> world transforms, (P,) conditioning."""
+        return PosedAvatar.of(self.avatar, torch.as_tensor(bone_transforms).float(), torch.as_tensor(pose_condition).float())
+
+
+def load_model(path: Path, device: torch.device | str = "cpu") -> ModelArtifact:
+    """Read and check a model artifact, rebuild its Avatar and occupancy grid."""
+    path = Path(path)
+    manifest = read_artifact(path, expected="model")
+    config = config_from_json(manifest["config"])
+    subject = SubjectArrays.read(path / SUBJECT_FILE)
+    avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
+    weights = load_state(path / "weights.npz")
+    avatar.load_state_dict(weights["avatar"])
+    box = avatar.canonical_box
+    grid = OccupancyGrid(box[0], box[1], resolution=config.occupancy_resolution)
+    grid.load_state_dict(weights["canonical_grid"])
+    avatar.eval()
+    return ModelArtifact(path, manifest, config, avatar.to(device), grid.to(device), subject)

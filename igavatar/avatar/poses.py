@@ -1,0 +1,187 @@
+"""Every pose source as one PoseSequence on a model's skeleton.
+
+    poses = procedural_poses(model, "walk", n_frames=60, seed=0, fps=30.0)
+    poses = read_poses(model, Path("poses.npz"), select=lambda n, where: list(range(n)))
+    poses.bone_transforms (N, J, 4, 4), poses.pose_condition (N, P), poses.local_rotations (N, J, 3, 3)
+
+Sources: a procedural motion (igavatar.body.motions), a pose file in any format of
+igavatar.body.pose_files (retargeted to the model's skeleton there), a capture directory (its
+poses.npz) and a dataset artifact. A dataset's frames keep its own bone transforms and pose
+conditioning as stored (they are what the model was trained on); their local rotations, which
+the GLB animation and poses.npz need, are recovered from those transforms.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, read_artifact, read_manifest
+from igavatar.avatar.dataset import read_dataset
+from igavatar.avatar.model import ModelArtifact
+from igavatar.body.motions import SKELETON_KINDS, motion_by_name, walk
+from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
+from igavatar.errors import ArtifactError, InputError
+
+#: Frames per second of procedural motions, and of pose files that do not say.
+DEFAULT_FPS = 30.0
+
+#: select(n_frames, where) -> the frame indices to keep of a source with n_frames frames
+#: (`where` names the source for error messages).
+FrameSelection = Callable[[int, str], list[int]]
+
+
+@dataclass(frozen=True, eq=False)
+class PoseSequence:
+    """N frames of a model's J-joint skeleton, ready to pose the avatar.
+
+    Attributes:
+        name: the motion's name or the source's file name; source: "procedural" or the path read.
+        frame_names: N names (a pose file's or dataset's frame names, else 0000, 0001, ...).
+        local_rotations: (N, J, 3, 3) relative to the rest pose; root_translation: (N, 3) metres.
+        bone_transforms: (N, J, 4, 4) canonical -> posed world; pose_condition: (N, P);
+        posed_joints: (N, J, 3) world joints.
+        fps: playback rate; in_place: whether the motion stays over one spot.
+        description: JSON-able facts for manifests (format, skeleton, source frames, indices).
+        inputs: the files and artifacts read (for manifests).
+    """
+
+    name: str
+    source: str
+    frame_names: list[str]
+    local_rotations: torch.Tensor
+    root_translation: torch.Tensor
+    bone_transforms: torch.Tensor
+    pose_condition: torch.Tensor
+    posed_joints: torch.Tensor
+    fps: float
+    in_place: bool = False
+    description: dict = field(default_factory=dict)
+    inputs: tuple[InputRecord, ...] = ()
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.local_rotations.shape[0])
+
+
+def _from_rotations(model: ModelArtifact, local_rotations: torch.Tensor, root_translation: torch.Tensor,
+                    **fields) -> PoseSequence:
+    frames = model.pose(local_rotations, root_translation)
+    if "frame_names" not in fields:
+        digits = max(4, len(str(local_rotations.shape[0] - 1)))
+        fields["frame_names"] = [f"{i:0{digits}d}" for i in range(local_rotations.shape[0])]
+    return PoseSequence(
+        local_rotations=local_rotations.float(), root_translation=root_translation.float(),
+        bone_transforms=frames.bone_transforms, pose_condition=frames.pose_condition, posed_joints=frames.posed_joints,
+        **fields,
+    )
+
+
+def procedural_poses(model: ModelArtifact, name: str, n_frames: int, seed: int, fps: float,
+                     travel: bool = False) -> PoseSequence:
+    """A shipped motion (igavatar.body.motions) for the model's skeleton; walk stays in place unless `travel`."""
+    kind = model.body_model
+    if kind not in SKELETON_KINDS:
+        raise InputError(
+            f"procedural motions drive {' and '.join(SKELETON_KINDS)} skeletons; the model {model.path} "
+            f"has body model '{kind}': give a pose file as MOTION instead"
+        )
+    skeleton = model.skeleton
+    if name == "walk":
+        motion = walk(kind, n_frames, seed, fps=fps, in_place=not travel, skeleton=skeleton)
+    else:
+        motion = motion_by_name(name, kind, n_frames, seed, fps=fps, skeleton=skeleton)
+    return _from_rotations(
+        model, motion.local_rotations_for(skeleton), motion.root_translation_tensor(), name=name,
+        source="procedural", fps=fps, in_place=name != "walk" or not travel,
+        description={"source": "procedural", "format": "procedural", "skeleton": kind, "source_frames": n_frames},
+    )
+
+
+def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps: float | None) -> PoseSequence:
+    """Frames of a dataset artifact, with its stored bone transforms and pose conditioning."""
+    dataset = read_dataset(path)
+    subject = dataset.subject
+    if not subject.same_skeleton(model.subject):
+        raise InputError(
+            f"{path}: its skeleton ({subject.n_joints} joints) is not the model's "
+            f"({len(model.joint_names)} joints, {model.body_model}); retargeting is not available"
+        )
+    all_frames = dataset.frames()
+    chosen = select(all_frames.n_frames, str(path / "frames.npz"))
+    frames = all_frames.select(chosen)
+    bone_transforms = torch.from_numpy(frames.bone_transforms).float()
+    rotations, translation = local_pose_from_bone_transforms(
+        bone_transforms.double(), subject.parents, torch.from_numpy(subject.rest_joints).double(),
+        torch.from_numpy(subject.canonical_rotations).double(),
+    )
+    return PoseSequence(
+        name=path.name, source=str(path), frame_names=list(frames.names), local_rotations=rotations.float(),
+        root_translation=translation.float(), bone_transforms=bone_transforms,
+        pose_condition=torch.from_numpy(frames.pose_condition).float(),
+        posed_joints=torch.from_numpy(frames.posed_joints).float(), fps=float(fps or DEFAULT_FPS),
+        description={"source": str(path), "format": "dataset", "skeleton": model.body_model,
+                     "source_frames": all_frames.n_frames, "frame_indices": chosen},
+        inputs=(InputRecord(path, "dataset"),),
+    )
+
+
+def file_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps: float | None,
+               anny_cache: Path | None = None, on_status: Callable[[str], None] | None = None) -> PoseSequence:
+    """Frames of a pose file or capture directory, converted to the model's skeleton."""
+    captured = path.is_dir() and (path / MANIFEST_NAME).is_file()
+    if captured:
+        read_artifact(path, expected="capture")  # an intact capture artifact, before reading its poses
+    sequence = read_pose_sequence(path)
+    chosen = select(sequence.n_frames, str(sequence.source))
+    selected = sequence.select(chosen)
+    phenotype = model.phenotype
+    rotations, translation = sequence_local_pose(
+        selected, model.skeleton, model.body_model, phenotype=phenotype, anny_cache=anny_cache, on_status=on_status,
+    )
+    description = {"source": str(path), "format": sequence.format, "skeleton": sequence.skeleton_kind,
+                   "source_frames": sequence.n_frames, "frame_indices": chosen}
+    if sequence.phenotype is not None and phenotype is not None:
+        description["phenotype_matches_model"] = all(
+            abs(sequence.phenotype.get(k, v) - v) < 1e-6 for k, v in phenotype.items()
+        )
+        if not description["phenotype_matches_model"] and on_status is not None:
+            on_status(f"{sequence.source}: recorded for another Anny phenotype; its pose parameters are "
+                      "applied to the model's subject")
+    if captured:
+        inputs: tuple[InputRecord, ...] = (InputRecord(path, "capture"),)
+    elif path.is_dir():
+        inputs = (InputRecord(sequence.source), InputRecord(path / "capture.json"))
+    else:
+        inputs = (InputRecord(path),)
+    return _from_rotations(
+        model, rotations, translation, name=path.stem, source=str(path), frame_names=list(selected.frame_names),
+        fps=float(fps or sequence.fps or DEFAULT_FPS), description=description, inputs=inputs,
+    )
+
+
+def read_poses(model: ModelArtifact, path: Path, select: FrameSelection, *, fps: float | None = None,
+               anny_cache: Path | None = None, on_status: Callable[[str], None] | None = None,
+               option: str = "MOTION") -> PoseSequence:
+    """The frames of a pose file, capture directory or dataset artifact at `path`.
+
+    Args:
+        select: which of the source's frames to keep (see FrameSelection).
+        fps: playback rate; None takes the file's, else DEFAULT_FPS.
+        option: the command-line name of the argument, for error messages.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{option} {path}: no such file or directory")
+    if path.is_dir() and (path / MANIFEST_NAME).is_file():
+        kind = read_manifest(path)["artifact"]
+        if kind == "dataset":
+            return dataset_poses(model, path, select, fps)
+        if kind != "capture":
+            raise ArtifactError(
+                f"{option} {path}: is a {kind} artifact; give a pose .npz, a capture directory or a dataset artifact"
+            )
+    return file_poses(model, path, select, fps, anny_cache, on_status)
