@@ -39,13 +39,13 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
-from igavatar.artifacts.manifest import InputRecord, build_manifest, read_manifest
+from igavatar.artifacts.manifest import InputRecord, build_manifest
 from igavatar.artifacts.targets import check_output_target
 from igavatar.avatar.boxes import posed_boxes
 from igavatar.avatar.cameras import CameraSequence, camera_file, capture_camera, orbit_cameras
 from igavatar.avatar.dataset import read_dataset
 from igavatar.avatar.glb import write_model_glb
-from igavatar.avatar.model import ModelArtifact, load_model
+from igavatar.avatar.model import ModelArtifact, load_model, read_model_manifest
 from igavatar.avatar.poses import DEFAULT_FPS, PoseSequence, procedural_poses, read_poses
 from igavatar.avatar.surfaces import canonical_mesh, vertex_colors, vertex_skin_weights
 from igavatar.body.motions import MOTION_NAMES
@@ -321,7 +321,7 @@ def _load(options: AnimateOptions, progress: ProgressSink) -> ModelArtifact:
     if not (Path(options.model) / "manifest.json").is_file():
         raise ArtifactError(f"{options.model}: no model artifact there; run `igavatar train` first, or pass --model DIR")
     if options.meshes or options.glb:
-        require_marching_memory(read_manifest(Path(options.model))["data"]["canonical_box"], options.mesh_resolution,
+        require_marching_memory(read_model_manifest(Path(options.model), check_hashes=False).canonical_box, options.mesh_resolution,
                                 f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     return load_model(Path(options.model), device)
 

@@ -42,10 +42,10 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
-from igavatar.artifacts.manifest import InputRecord, build_manifest, read_artifact, validate_against
+from igavatar.artifacts.manifest import InputRecord, build_manifest, validate_against
 from igavatar.artifacts.targets import check_output_target
 from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
-from igavatar.avatar.model import ModelArtifact, load_model
+from igavatar.avatar.model import ModelArtifact, ModelManifest, load_model, read_model_manifest
 from igavatar.avatar.surfaces import canonical_mesh
 from igavatar.capture.images import scale_intrinsics
 from igavatar.capture.scans import ScanMatching, default_gt_dir, existing, load_scan, match_scans
@@ -115,25 +115,25 @@ class EvalOptions:
 # ----------------------------------------------------------------------------- inputs
 
 
-def resolve_dataset(model_dir: Path, manifest: dict, override: Path | None) -> Path:
+def resolve_dataset(model: ModelManifest, override: Path | None) -> Path:
     """The dataset the model was trained on (manifest data.dataset), or --dataset."""
     if override is not None:
         if not Path(override).exists():
             raise InputError(f"--dataset {override}: no such dataset directory")
         return Path(override)
-    recorded = Path(manifest["data"]["dataset"])
-    found = existing(recorded, model_dir)
+    recorded = model.recorded_dataset
+    found = existing(recorded, model.path)
     if found is None:
         raise InputError(
-            f"{model_dir}/manifest.json: data.dataset = {recorded} does not exist (nor {model_dir.parent / recorded.name}); "
+            f"{model.path}/manifest.json: data.dataset = {recorded} does not exist (nor {model.path.parent / recorded.name}); "
             "pass the dataset the model was trained on with --dataset"
         )
     return found
 
 
 def _check_compatible(model: ModelArtifact, dataset: DatasetArtifact) -> None:
-    for key in ("joint_names", "pose_dim"):
-        if model.data[key] != dataset.data[key]:
+    for key, ours, theirs in (("joint_names", model.joint_names, dataset.joint_names), ("pose_dim", model.pose_dim, dataset.pose_dim)):
+        if ours != theirs:
             raise InputError(
                 f"--dataset {dataset.path}: its {key} differs from the model's ({model.path}); "
                 "evaluate with the dataset the model was trained on"
@@ -216,11 +216,11 @@ class _Inputs:
 
 def _read_inputs(options: EvalOptions, progress: ProgressSink) -> _Inputs:
     model_dir, out = Path(options.model), Path(options.out)
-    model_manifest = read_artifact(model_dir, expected="model")
-    dataset = read_dataset(resolve_dataset(model_dir, model_manifest, options.dataset))
+    model_manifest = read_model_manifest(model_dir)
+    dataset = read_dataset(resolve_dataset(model_manifest, options.dataset))
     check_output_target(out, "report", [model_dir, dataset.path, options.gt])
     if options.geometry:
-        require_marching_memory(model_manifest["data"]["canonical_box"], options.mesh_resolution,
+        require_marching_memory(model_manifest.canonical_box, options.mesh_resolution,
                                 f"--mesh-resolution {options.mesh_resolution} (the marching-cubes grid)")
     frames = dataset.frames()
     if not frames.test_indices:

@@ -26,7 +26,7 @@ Mesh layout (schema `mesh`, version 1; every position in metres):
 The canonical surface is marching cubes of the SDF intersected with the canonical box (the hash
 grid is only defined there), so it is closed even when an undertrained surface reaches the box;
 how many vertices lie on the box is recorded. Extraction is coarse-to-fine and narrow-band
-(igavatar.mesh.extract), at the paper's 512 by default on CPU and GPU alike (20-45 s on two CPU
+(igavatar.geometry.extract), at the paper's 512 by default on CPU and GPU alike (20-45 s on two CPU
 cores), then pymeshlab cleanup (igavatar.mesh.cleanup): largest component (or every component
 above --min-component-ratio), optional Taubin smoothing and decimation.
 
@@ -58,10 +58,10 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
-from igavatar.artifacts.manifest import InputRecord, build_manifest, read_manifest
+from igavatar.artifacts.manifest import InputRecord, build_manifest
 from igavatar.artifacts.targets import check_output_target
 from igavatar.avatar.glb import write_model_glb
-from igavatar.avatar.model import ModelArtifact, load_model
+from igavatar.avatar.model import ModelArtifact, load_model, read_model_manifest
 from igavatar.avatar.poses import PoseSequence, read_poses
 from igavatar.avatar.surfaces import (
     COARSE_RESOLUTION,
@@ -146,7 +146,7 @@ def parse_formats(text: str) -> tuple[str, ...]:
 def _check_memory(options: ExportOptions, model_path: Path) -> None:
     """Refuse a --resolution or --exr-size this machine cannot hold, before the model is even loaded."""
     # The marching-cubes grid and the EXR maps live in host memory whatever --device says.
-    require_marching_memory(read_manifest(model_path)["data"]["canonical_box"], options.resolution,
+    require_marching_memory(read_model_manifest(model_path, check_hashes=False).canonical_box, options.resolution,
                             f"--resolution {options.resolution} (the marching-cubes grid)")
     if options.exr:
         require_memory(options.exr_size**2 * IMAGE_BYTES_PER_PIXEL, f"--exr-size {options.exr_size} (each depth/normal map)")

@@ -23,9 +23,7 @@ Dataset layout (schema `dataset`, version 1):
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,21 +34,22 @@ import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.targets import check_output_target
-from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact, read_manifest, sha256_json
+from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact
 from igavatar.body.capsules import capsule_prior
 from igavatar.body.skeleton import linear_blend_skinning
 from igavatar.capture.capture_v1 import CaptureV1, load_image, load_mask
-from igavatar.geometry.projection import project_points
-from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.contact_sheet import contact_sheet
+from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.images import resize_image, resize_mask, resize_plan, scale_intrinsics, undistort
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
-from igavatar.errors import ArtifactError, InputError
+from igavatar.errors import InputError
+from igavatar.geometry.projection import project_points
 from igavatar.skinning.bone_weights import BoneWeightConfig, build_bone_skinning_grid
 from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box
+from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
 
@@ -131,20 +130,6 @@ def _input_records(capture: CaptureV1, smpl_model: Path | None = None) -> list[I
         # The user's SMPL file shapes the template and the skeleton: a different file is a new dataset.
         records.append(InputRecord(smpl_model_for(capture, smpl_model)))
     return records
-
-
-def _up_to_date(out: Path, config: dict, inputs: list[dict]) -> bool:
-    if not (out / MANIFEST_NAME).is_file():
-        return False
-    try:
-        manifest = read_manifest(out)
-    except ArtifactError:
-        return False
-    return (
-        manifest["artifact"] == "dataset"
-        and sha256_json(manifest["config"]) == sha256_json(config)
-        and [i["sha256"] for i in manifest["inputs"]] == [i["sha256"] for i in inputs]
-    )
 
 
 def _squeeze_axis(vertices: torch.Tensor) -> int:
@@ -256,166 +241,187 @@ def _hull_prior(
     return ShapePrior(vertices, hull.faces, "visual_hull", box_min, box_max, grid, _padded(posed_boxes))
 
 
+def _dataset_config(options: PreprocessOptions, capture: CaptureV1, input_format: str) -> dict:
+    """Everything that shapes the dataset (the manifest's config; compared to skip an unchanged run)."""
+    if options.shape_prior not in SHAPE_PRIORS:
+        raise InputError(f"--shape-prior {options.shape_prior!r}: choose one of {', '.join(SHAPE_PRIORS)}")
+    config = options.config() | {"input_format": input_format}
+    if capture.body_model == "skeleton" or options.shape_prior == "visual-hull":
+        # The prior is computed here, not read: a change to how it is made must redo the dataset.
+        config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
+    if not capture.has_masks:
+        config["segmentation"] = {"method": "grabcut", "band_m": CLOTHING_BAND_M, "iterations": GRABCUT_ITERATIONS}
+    return config
+
+
+def _hull_views(capture: CaptureV1, canonical: CanonicalSubject, options: PreprocessOptions) -> list[int]:
+    """Training frames whose masks vote for the visual hull; [] when the prior is the body model's.
+
+    A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
+    its prior is the masks' visual hull, made once the masks are read.
+    """
+    train_names = set(capture.splits["train"])
+    train_frames = [i for i, name in enumerate(capture.frames) if name in train_names]
+    use_hull = canonical.template_vertices is None or options.shape_prior == "visual-hull"
+    views = spread_views(train_frames, MAX_HULL_VIEWS) if use_hull else []
+    if len(views) >= MIN_HULL_VIEWS:
+        return views
+    if options.shape_prior == "visual-hull":
+        raise InputError(
+            f"--shape-prior visual-hull: the capture has {len(train_frames)} training frames, and the hull needs at "
+            f"least {MIN_HULL_VIEWS} views to vote; leave --shape-prior at auto (the body model's template)"
+        )
+    return []
+
+
+def _frame_mask(capture: CaptureV1, i: int, rgb: np.ndarray, mask: np.ndarray, K: np.ndarray, subject: PosedSubject,
+                canonical: CanonicalSubject) -> np.ndarray:
+    """The frame's mask at the dataset's size: given, or cut by GrabCut around the posed body; never empty."""
+    frame = capture.frames[i]
+    if not capture.has_masks:
+        mask = estimate_mask(rgb, K[i], capture.w2c[i], _segmentation_body(subject, canonical, i))
+        if not mask.any():
+            raise InputError(
+                f"{capture.image_path(frame)}: no subject found where the posed body projects; check "
+                "that the poses and cameras put the body in view, or give masks"
+            )
+    if not mask.any():
+        raise InputError(
+            f"{capture.mask_path(frame)}: the mask of frame {frame} is empty (no subject pixels); "
+            "give a mask with the subject in white (255), drop the frame from capture.json, "
+            "or remove masks/ to have them estimated"
+        )
+    return mask
+
+
+def _write_frames(tmp: Path, capture: CaptureV1, subject: PosedSubject, canonical: CanonicalSubject, K: np.ndarray,
+                  size_hw: tuple[int, int], hull_views: list[int], progress: ProgressSink) -> dict[int, np.ndarray]:
+    """images/ and masks/ at the dataset's size and the contact sheet; returns the hull views' masks."""
+    (tmp / "images").mkdir()
+    (tmp / "masks").mkdir()
+    n_frames = len(capture.frames)
+    sheet_frames = set(np.linspace(0, n_frames - 1, min(CONTACT_SHEET_FRAMES, n_frames)).round().astype(int))
+    sheet_items, hull_masks = [], {}
+    task = "resizing frames" if capture.has_masks else "resizing frames, segmenting the subject"
+    with progress.task(task, total=n_frames) as advance:
+        for i, frame in enumerate(capture.frames):
+            rgb = load_image(capture.image_path(frame), (capture.height, capture.width))
+            if capture.has_masks:
+                mask = load_mask(capture.mask_path(frame), (capture.height, capture.width))
+            else:
+                mask = np.ones((capture.height, capture.width), bool)  # replaced after resizing
+            dist = capture.frame_dist(i)
+            if dist is not None:
+                rgb, mask = undistort(rgb, mask, capture.K[i], dist)
+            rgb, mask = resize_image(rgb, size_hw), resize_mask(mask, size_hw)
+            mask = _frame_mask(capture, i, rgb, mask, K, subject, canonical)
+            if i in hull_views:
+                hull_masks[i] = mask
+            cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
+            if i in sheet_frames:
+                joints_uv, _ = project_points(K[i], capture.w2c[i], canonical.posed_joints[i].double().numpy())
+                sheet_items.append((rgb, mask, joints_uv, frame if capture.has_masks else f"{frame} (est.)"))
+            advance(1)
+    sheet = contact_sheet(sheet_items, subject.skeleton.parents)
+    cv2.imwrite(str(tmp / "contact_sheet.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    return hull_masks
+
+
+def _write_arrays(tmp: Path, capture: CaptureV1, subject: PosedSubject, canonical: CanonicalSubject, prior: ShapePrior,
+                  K: np.ndarray) -> None:
+    """frames.npz, subject.npz and template.ply (the shape prior's mesh)."""
+    splits = capture.splits
+    np.savez_compressed(
+        tmp / "frames.npz",
+        frame_names=np.array(capture.frames, dtype=np.str_),
+        K=K.astype(np.float32), w2c=capture.w2c.astype(np.float32),
+        bone_transforms=canonical.bone_transforms.numpy().astype(np.float32),
+        pose_condition=canonical.pose_condition.numpy().astype(np.float32),
+        posed_boxes=prior.posed_boxes.numpy().astype(np.float32),
+        posed_joints=canonical.posed_joints.numpy().astype(np.float32),
+        is_train=np.isin(capture.frames, splits["train"]),
+        is_test=np.isin(capture.frames, splits.get("test", [])),
+    )
+    np.savez_compressed(
+        tmp / "subject.npz",
+        parents=subject.skeleton.parents.astype(np.int64),
+        rest_joints=np.asarray(subject.skeleton.rest_joints, np.float32),
+        canonical_joints=canonical.canonical_joints.numpy().astype(np.float32),
+        canonical_rotations=subject.canonical_rotations.numpy().astype(np.float32),
+        joint_names=np.array(subject.skeleton.joint_names, dtype=np.str_),
+        init_bones=np.array(subject.init_bones, dtype=np.int64),
+        skinning_grid=prior.skinning_grid.numpy().astype(np.float32),
+        grid_box_min=prior.box_min.numpy().astype(np.float32), grid_box_max=prior.box_max.numpy().astype(np.float32),
+        canonical_box=prior.canonical_box().numpy().astype(np.float32),
+    )
+    trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / "template.ply")
+
+
+def _dataset_data(capture: CaptureV1, input_format: str, subject: PosedSubject, canonical: CanonicalSubject,
+                  prior: ShapePrior, size_hw: tuple[int, int], scale: float, options: PreprocessOptions) -> dict:
+    """The dataset manifest's data."""
+    frame_index = set(capture.frames)
+    return {
+        "source_format": input_format,
+        "body_model": subject.body_model,
+        "frames": capture.frames,
+        "splits": {k: [f for f in v if f in frame_index] for k, v in capture.splits.items()},
+        "image_size": [size_hw[0], size_hw[1]],
+        "scale": scale,
+        "joint_names": list(subject.skeleton.joint_names),
+        "pose_dim": int(canonical.pose_condition.shape[1]),
+        "skinning_grid": {
+            "resolution": list(options.grid_resolution),
+            "box_min": prior.box_min.tolist(), "box_max": prior.box_max.tolist(),
+        },
+        "canonical_box": prior.canonical_box().tolist(),
+        "has_template": True,
+        "shape_prior": prior.kind,
+        "has_scans": bool(capture.scans),
+        # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
+        "masks": "given" if capture.has_masks else "estimated (grabcut)",
+        "subject": json.loads(json.dumps(subject.description)),
+    }
+
+
 def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Read the capture, pose its body model, resize images, build the skinning grid, write the dataset.
 
     Returns a JSON-able summary (paths, counts, seconds). Raises InputError/ArtifactError/
     BodyModelError/NotAvailableError for problems a user can fix.
     """
-    started = time.perf_counter()
-    timings: dict[str, float] = {}
+    clock = StageClock()
     input_format = detect_format(Path(options.capture), options.input_format)
     capture = read_layout(Path(options.capture), input_format)
-    # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
-    masks_source = "given" if capture.has_masks else "estimated (grabcut)"
-    config = options.config() | {"input_format": input_format}
-    if options.shape_prior not in SHAPE_PRIORS:
-        raise InputError(f"--shape-prior {options.shape_prior!r}: choose one of {', '.join(SHAPE_PRIORS)}")
-    if capture.body_model == "skeleton" or options.shape_prior == "visual-hull":
-        # The prior is computed here, not read: a change to how it is made must redo the dataset.
-        config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
-    if not capture.has_masks:
-        config["segmentation"] = {"method": "grabcut", "band_m": CLOTHING_BAND_M, "iterations": GRABCUT_ITERATIONS}
+    config = _dataset_config(options, capture, input_format)
     inputs = _input_records(capture, options.smpl_model)
-    input_json = [record.to_json() for record in inputs]
     out = Path(options.out)
     output_inputs = [capture.root, options.smpl_model]
-    if not options.force and _up_to_date(out, config, input_json):  # read-only, so before the target check
-        return {"dataset": str(out), "skipped": "inputs and options unchanged (use --force to redo)"}
+    if not options.force and unchanged(out, "dataset", config, inputs):  # read-only, so before the target check
+        return skipped("dataset", out)
     check_output_target(out, "dataset", output_inputs)
-
-    tick = time.perf_counter()
-    subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
-    canonical = canonicalize(subject)
-    timings["body_model_s"] = time.perf_counter() - tick
-
-    # A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
-    # its prior is the masks' visual hull, made once the masks are read (below).
-    train_names = set(capture.splits["train"])
-    train_frames = [i for i, name in enumerate(capture.frames) if name in train_names]
-    use_hull = canonical.template_vertices is None or options.shape_prior == "visual-hull"
-    hull_views = spread_views(train_frames, MAX_HULL_VIEWS) if use_hull else []
-    if len(hull_views) < MIN_HULL_VIEWS:
-        if options.shape_prior == "visual-hull":
-            raise InputError(
-                f"--shape-prior visual-hull: the capture has {len(train_frames)} training frames, and the hull needs at "
-                f"least {MIN_HULL_VIEWS} views to vote; leave --shape-prior at auto (the body model's template)"
-            )
-        hull_views = []
-    hull_view_set = set(hull_views)
-    hull_masks: dict[int, np.ndarray] = {}
-
+    with clock("body_model_s"):
+        subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
+        canonical = canonicalize(subject)
+    hull_views = _hull_views(capture, canonical, options)
     scale_xy, size_hw = resize_plan(capture.height, capture.width, options.max_size)
     K = scale_intrinsics(capture.K, scale_xy)
-    frame_index = {name: i for i, name in enumerate(capture.frames)}
-    sheet_frames = set(np.linspace(0, len(capture.frames) - 1, min(CONTACT_SHEET_FRAMES, len(capture.frames))).round().astype(int))
-    sheet_items = []
-
     with atomic_directory(out, kind="dataset", inputs=output_inputs) as tmp:
-        (tmp / "images").mkdir()
-        (tmp / "masks").mkdir()
-        tick = time.perf_counter()
-        task = "resizing frames" if capture.has_masks else "resizing frames, segmenting the subject"
-        with progress.task(task, total=len(capture.frames)) as advance:
-            for i, frame in enumerate(capture.frames):
-                rgb = load_image(capture.image_path(frame), (capture.height, capture.width))
-                if capture.has_masks:
-                    mask = load_mask(capture.mask_path(frame), (capture.height, capture.width))
-                else:
-                    mask = np.ones((capture.height, capture.width), bool)  # replaced after resizing
-                dist = capture.frame_dist(i)
-                if dist is not None:
-                    rgb, mask = undistort(rgb, mask, capture.K[i], dist)
-                rgb, mask = resize_image(rgb, size_hw), resize_mask(mask, size_hw)
-                if not capture.has_masks:
-                    mask = estimate_mask(rgb, K[i], capture.w2c[i], _segmentation_body(subject, canonical, i))
-                    if not mask.any():
-                        raise InputError(
-                            f"{capture.image_path(frame)}: no subject found where the posed body projects; check "
-                            "that the poses and cameras put the body in view, or give masks"
-                        )
-                if not mask.any():
-                    raise InputError(
-                        f"{capture.mask_path(frame)}: the mask of frame {frame} is empty (no subject pixels); "
-                        "give a mask with the subject in white (255), drop the frame from capture.json, "
-                        "or remove masks/ to have them estimated"
-                    )
-                if i in hull_view_set:
-                    hull_masks[i] = mask
-                cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-                cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
-                if i in sheet_frames:
-                    joints_uv, _ = project_points(K[i], capture.w2c[i], canonical.posed_joints[i].double().numpy())
-                    sheet_items.append((rgb, mask, joints_uv, frame if capture.has_masks else f"{frame} (est.)"))
-                advance(1)
-        timings["frames_s"] = time.perf_counter() - tick
-
-        tick = time.perf_counter()
-        prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution,
-                             options.weight_smoothing) if hull_views else None
-        if prior is None:
-            prior = _body_prior(subject, canonical, options.grid_resolution, options.weight_smoothing)
-        canonical_box = prior.canonical_box()
-        timings["skinning_grid_s"] = time.perf_counter() - tick
-
-        sheet = contact_sheet(sheet_items, subject.skeleton.parents)
-        cv2.imwrite(str(tmp / "contact_sheet.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
-
-        splits = capture.splits
-        np.savez_compressed(
-            tmp / "frames.npz",
-            frame_names=np.array(capture.frames, dtype=np.str_),
-            K=K.astype(np.float32), w2c=capture.w2c.astype(np.float32),
-            bone_transforms=canonical.bone_transforms.numpy().astype(np.float32),
-            pose_condition=canonical.pose_condition.numpy().astype(np.float32),
-            posed_boxes=prior.posed_boxes.numpy().astype(np.float32),
-            posed_joints=canonical.posed_joints.numpy().astype(np.float32),
-            is_train=np.isin(capture.frames, splits["train"]),
-            is_test=np.isin(capture.frames, splits.get("test", [])),
-        )
-        np.savez_compressed(
-            tmp / "subject.npz",
-            parents=subject.skeleton.parents.astype(np.int64),
-            rest_joints=np.asarray(subject.skeleton.rest_joints, np.float32),
-            canonical_joints=canonical.canonical_joints.numpy().astype(np.float32),
-            canonical_rotations=subject.canonical_rotations.numpy().astype(np.float32),
-            joint_names=np.array(subject.skeleton.joint_names, dtype=np.str_),
-            init_bones=np.array(subject.init_bones, dtype=np.int64),
-            skinning_grid=prior.skinning_grid.numpy().astype(np.float32),
-            grid_box_min=prior.box_min.numpy().astype(np.float32), grid_box_max=prior.box_max.numpy().astype(np.float32),
-            canonical_box=canonical_box.numpy().astype(np.float32),
-        )
-        trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / "template.ply")
-        data = {
-            "source_format": input_format,
-            "body_model": subject.body_model,
-            "frames": capture.frames,
-            "splits": {k: [f for f in v if f in frame_index] for k, v in splits.items()},
-            "image_size": [size_hw[0], size_hw[1]],
-            "scale": scale_xy[0],
-            "joint_names": list(subject.skeleton.joint_names),
-            "pose_dim": int(canonical.pose_condition.shape[1]),
-            "skinning_grid": {
-                "resolution": list(options.grid_resolution),
-                "box_min": prior.box_min.tolist(), "box_max": prior.box_max.tolist(),
-            },
-            "canonical_box": canonical_box.tolist(),
-            "has_template": True,
-            "shape_prior": prior.kind,
-            "has_scans": bool(capture.scans),
-            "masks": masks_source,
-            "subject": json.loads(json.dumps(subject.description)),
-        }
-        timings["total_s"] = time.perf_counter() - started
-        build_manifest(
-            "dataset", tmp, stage="preprocess",
-            config=config,
-            inputs=inputs, data=data, seed=None, device="cpu", timings=timings,
-            peak_memory={"ram_bytes": peak_ram_bytes()},
-        )
+        with clock("frames_s"):
+            hull_masks = _write_frames(tmp, capture, subject, canonical, K, size_hw, hull_views, progress)
+        with clock("skinning_grid_s"):
+            prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution,
+                                options.weight_smoothing) if hull_views else None
+            if prior is None:
+                prior = _body_prior(subject, canonical, options.grid_resolution, options.weight_smoothing)
+        _write_arrays(tmp, capture, subject, canonical, prior, K)
+        data = _dataset_data(capture, input_format, subject, canonical, prior, size_hw, scale_xy[0], options)
+        build_manifest("dataset", tmp, stage="preprocess", config=config, inputs=inputs, data=data, seed=None,
+                       device="cpu", timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes()})
     return {
-        "dataset": str(out), "frames": len(capture.frames), "train": len(splits["train"]),
-        "test": len(splits.get("test", [])), "image_size": f"{size_hw[1]}x{size_hw[0]}",
+        "dataset": str(out), "frames": len(capture.frames), "train": len(capture.splits["train"]),
+        "test": len(capture.splits.get("test", [])), "image_size": f"{size_hw[1]}x{size_hw[0]}",
         "joints": subject.skeleton.num_joints, "contact_sheet": str(out / "contact_sheet.png"),
-        "seconds": round(time.perf_counter() - started, 2),
+        "seconds": round(clock.elapsed(), 2),
     }

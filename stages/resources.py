@@ -125,7 +125,7 @@ def require_marching_memory(canonical_box, resolution: int, what: str) -> None:
     """
     import numpy as np
 
-    from igavatar.mesh.extract import marching_cubes_bytes
+    from igavatar.geometry.extract import marching_cubes_bytes
 
     box = np.asarray(canonical_box, dtype=np.float64)
     pad = 0.02 * float((box[1] - box[0]).max())

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import resource
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,20 +23,21 @@ import torch
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
+from igavatar.artifacts.manifest import build_manifest
 from igavatar.artifacts.targets import check_output_target
-from igavatar.artifacts.manifest import MANIFEST_NAME, build_manifest, read_artifact
 from igavatar.body.anny_body import ANNY_PHENOTYPE_LABELS, AnnyBody, load_anny, resolve_phenotype
 from igavatar.body.motions import Motion, motion_by_name, turntable, walk
 from igavatar.body.rotations import rigid_matrix
 from igavatar.body.skeleton import forward_kinematics, linear_blend_skinning
-from igavatar.errors import ArtifactError, InputError
-from igavatar.metrics.canonical import REST_SURFACE_FILE
+from igavatar.errors import InputError
 from igavatar.geometry.mesh_ops import vertex_normals
-from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject
 from igavatar.geometry.raycast import CameraRays, MeshRayCaster, RayHits, interpolate_vertex_values, render_mesh
-from igavatar.synth.skeleton_capture import bare_skeleton_poses, root_only_poses
+from igavatar.metrics.canonical import REST_SURFACE_FILE
+from igavatar.synth.garments import GARMENTS, ClothedSubject, build_clothed_subject
 from igavatar.synth.scene import frame_static_camera, lambert_shading, light_position, yaw_about_vertical
+from igavatar.synth.skeleton_capture import bare_skeleton_poses, root_only_poses
 from igavatar.synth.texture import TEXTURES, SolidTexture, find_landmarks, make_texture, region_ids
+from stages.common import StageClock, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 
 #: Frames per second of the training turn (and the capture's nominal fps).
@@ -300,14 +300,66 @@ def _write_rest_surface(path: Path, subject: ClothedSubject) -> None:
              weights_index=top.astype(np.int64), weights_value=value / value.sum(axis=1, keepdims=True))
 
 
-def _existing_matches(out: Path, config: dict) -> bool:
-    if not (out / MANIFEST_NAME).is_file():
-        return False
-    try:
-        manifest = read_artifact(out, "capture")
-    except ArtifactError:
-        return False
-    return manifest.get("config") == config
+def _capture_poses(options: SynthOptions, body: AnnyBody, local_rotations: torch.Tensor, root_translation: torch.Tensor,
+                   x_posed: np.ndarray) -> dict[str, np.ndarray]:
+    """poses.npz of the chosen skeleton: Anny's pose parameters, bare joints, or one rigid root."""
+    if options.skeleton == "anny":
+        return {
+            "pose_parameters": body.pose_parameters_from_local_rotations(local_rotations, root_translation).numpy(),
+            "phenotype_labels": np.array(body.phenotype_labels, dtype=np.str_),
+            "phenotype_values": body.phenotype_values,
+        }
+    if options.skeleton == "bare":
+        return bare_skeleton_poses(body.skeleton, local_rotations, root_translation)
+    return root_only_poses(x_posed)
+
+
+def _capture_meta(options: SynthOptions, config: dict, parts: list, subject: ClothedSubject, printed_text: str) -> dict:
+    """capture.json (also the manifest's data)."""
+    return {
+        "format": "igavatar-capture",
+        "version": 1,
+        "body_model": "anny" if options.skeleton == "anny" else "skeleton",
+        "frames": [name for part in parts for name in part.frames],
+        "splits": {
+            "train": [f for p in parts if p.split == "train" for f in p.frames],
+            "test": [f for p in parts if p.split == "test" for f in p.frames],
+        },
+        "fps": TRAIN_FPS,
+        "image_ext": ".png",
+        "subject": {
+            "phenotype": config["phenotype"],
+            "garment": options.garment,
+            "texture": options.texture,
+            "printed_text": printed_text,
+            "seed": int(options.seed),
+            "vertices": int(subject.vertices_canonical.shape[0]),
+            "faces": int(subject.faces.shape[0]),
+        },
+        "motions": {
+            part.motion.name: {"split": part.split, "frames": list(part.frames), "fps": part.motion.fps,
+                               "yaw_rad": part.yaw, "seed": part.seed}
+            for part in parts
+        },
+        "camera": {"distance_m": CAMERA_DISTANCE_M, "static": True, "supersample": SUPERSAMPLE},
+    }
+
+
+def _render_frames(tmp: Path, frames: list[str], x_posed: np.ndarray, subject: ClothedSubject, texture, rays: CameraRays,
+                   light: np.ndarray, progress: ProgressSink) -> None:
+    """images/, masks/ and scans/ of every frame (ray cast, supersampled)."""
+    for sub in ("images", "masks", "scans"):
+        (tmp / sub).mkdir()
+    with progress.task("rendering frames", total=len(frames)) as advance:
+        for index, name in enumerate(frames):
+            x_world = x_posed[index]
+            caster = MeshRayCaster(x_world, subject.faces)
+            normals = vertex_normals(x_world, subject.faces)
+            frame = render_mesh(caster, rays, _shader(subject, texture, normals, light), background=BACKGROUND)
+            cv2.imwrite(str(tmp / "images" / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(tmp / "masks" / f"{name}.png"), frame.mask.astype(np.uint8) * 255)
+            trimesh.Trimesh(x_world, subject.faces, process=False).export(tmp / "scans" / f"{name}.ply")
+            advance(1)
 
 
 def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
@@ -319,105 +371,38 @@ def run_synth(options: SynthOptions, progress: ProgressSink = NULL_PROGRESS) -> 
     _check_options(options)
     config = resolved_config(options)
     out = Path(options.out)
-    if not options.force and _existing_matches(out, config):  # read-only, so before the target check
+    if not options.force and unchanged(out, "capture", config, []):  # read-only, so before the target check
+        # The one summary whose "skipped" is a flag: a synth run always says whether it rendered.
         return {"path": str(out), "skipped": True, "reason": "a capture with the same config exists (use --force to redo)"}
     check_output_target(out, "capture")
-
-    started = time.perf_counter()
-    timings: dict[str, float] = {}
-    body = AnnyBody(load_anny(options.anny_cache, on_status=progress.status), config["phenotype"])
-    subject = build_subject(body, options.garment)
-    texture = build_texture(body, options.texture, options.seed)
-    timings["subject_s"] = time.perf_counter() - started
-
+    clock = StageClock()
+    with clock("subject_s"):
+        body = AnnyBody(load_anny(options.anny_cache, on_status=progress.status), config["phenotype"])
+        subject = build_subject(body, options.garment)
+        texture = build_texture(body, options.texture, options.seed)
     parts = make_sequence(body, options.train_frames, options.test_frames, options.seed, options.holdout_frames,
                           static=options.skeleton == "root")
-    frames = [name for part in parts for name in part.frames]
+    meta = _capture_meta(options, config, parts, subject, texture.text)
     local_rotations, root_translation = sequence_poses(body, parts)
     x_posed = pose_subject(subject, body, local_rotations, root_translation)
-    if options.skeleton == "anny":
-        poses = {
-            "pose_parameters": body.pose_parameters_from_local_rotations(local_rotations, root_translation).numpy(),
-            "phenotype_labels": np.array(body.phenotype_labels, dtype=np.str_),
-            "phenotype_values": body.phenotype_values,
-        }
-    elif options.skeleton == "bare":
-        poses = bare_skeleton_poses(body.skeleton, local_rotations, root_translation)
-    else:
-        poses = root_only_poses(x_posed)
     size = int(options.resolution)
     K, w2c = frame_static_camera(x_posed.reshape(-1, 3), size, size, distance=CAMERA_DISTANCE_M)
-    light = light_position(w2c)
     rays = CameraRays(K, w2c, size, size, supersample=SUPERSAMPLE)
-
-    meta = {
-        "format": "igavatar-capture",
-        "version": 1,
-        "body_model": "anny" if options.skeleton == "anny" else "skeleton",
-        "frames": frames,
-        "splits": {
-            "train": [f for p in parts if p.split == "train" for f in p.frames],
-            "test": [f for p in parts if p.split == "test" for f in p.frames],
-        },
-        "fps": TRAIN_FPS,
-        "image_ext": ".png",
-        "subject": {
-            "phenotype": config["phenotype"],
-            "garment": options.garment,
-            "texture": options.texture,
-            "printed_text": texture.text,
-            "seed": int(options.seed),
-            "vertices": int(subject.vertices_canonical.shape[0]),
-            "faces": int(subject.faces.shape[0]),
-        },
-        "motions": {
-            part.motion.name: {
-                "split": part.split,
-                "frames": list(part.frames),
-                "fps": part.motion.fps,
-                "yaw_rad": part.yaw,
-                "seed": part.seed,
-            }
-            for part in parts
-        },
-        "camera": {"distance_m": CAMERA_DISTANCE_M, "static": True, "supersample": SUPERSAMPLE},
-    }
-
-    render_started = time.perf_counter()
     with atomic_directory(out, kind="capture") as tmp:
-        for sub in ("images", "masks", "scans"):
-            (tmp / sub).mkdir()
-        with progress.task("rendering frames", total=len(frames)) as advance:
-            for index, name in enumerate(frames):
-                x_world = x_posed[index]
-                caster = MeshRayCaster(x_world, subject.faces)
-                normals = vertex_normals(x_world, subject.faces)
-                frame = render_mesh(caster, rays, _shader(subject, texture, normals, light), background=BACKGROUND)
-                cv2.imwrite(str(tmp / "images" / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-                cv2.imwrite(str(tmp / "masks" / f"{name}.png"), frame.mask.astype(np.uint8) * 255)
-                trimesh.Trimesh(x_world, subject.faces, process=False).export(tmp / "scans" / f"{name}.ply")
-                advance(1)
-        np.savez(tmp / "cameras.npz", K=K, w2c=w2c, height=np.int64(size), width=np.int64(size))
-        np.savez(tmp / "poses.npz", **poses)
-        _write_rest_surface(tmp / REST_SURFACE, subject)
-        (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n")
-        timings["render_s"] = time.perf_counter() - render_started
-        timings["total_s"] = time.perf_counter() - started
+        with clock("render_s"):
+            _render_frames(tmp, meta["frames"], x_posed, subject, texture, rays, light_position(w2c), progress)
+            np.savez(tmp / "cameras.npz", K=K, w2c=w2c, height=np.int64(size), width=np.int64(size))
+            np.savez(tmp / "poses.npz", **_capture_poses(options, body, local_rotations, root_translation, x_posed))
+            _write_rest_surface(tmp / REST_SURFACE, subject)
+            (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n")
         build_manifest(
             "capture", tmp, stage="synth", config=config, inputs=[], data=meta, seed=int(options.seed),
-            timings=timings, peak_memory={"ram_bytes": float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024.0},
+            timings=clock.finish(), peak_memory={"ram_bytes": float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024.0},
         )
-    seconds = time.perf_counter() - started
+    n_frames = len(meta["frames"])
     return {
-        "path": str(out),
-        "skipped": False,
-        "frames": len(frames),
-        "train_frames": len(meta["splits"]["train"]),
-        "test_frames": len(meta["splits"]["test"]),
-        "resolution": f"{size}x{size}",
-        "garment": options.garment,
-        "texture": options.texture,
-        "seconds": round(seconds, 2),
-        "seconds_per_frame": round(timings["render_s"] / len(frames), 3),
+        "path": str(out), "skipped": False, "frames": n_frames,
+        "train_frames": len(meta["splits"]["train"]), "test_frames": len(meta["splits"]["test"]),
+        "resolution": f"{size}x{size}", "garment": options.garment, "texture": options.texture,
+        "seconds": round(clock.elapsed(), 2), "seconds_per_frame": round(clock.timings["render_s"] / n_frames, 3),
     }
-

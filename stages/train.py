@@ -291,6 +291,7 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
     data, train_seconds = dataset.data, trainer.seconds
     return {
         "dataset": str(dataset.path),
+        # The dataset's facts every later stage needs, carried over as the dataset recorded them.
         **{key: data[key] for key in ("body_model", "joint_names", "pose_dim", "image_size", "canonical_box", "splits")},
         "subject": data.get("subject", {}),
         "steps": trainer.step,
@@ -319,7 +320,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
                    f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
     torch.manual_seed(config.seed)
     data = training_data(dataset)
-    avatar = build_avatar(config, dataset.subject, dataset.data["pose_dim"])
+    avatar = build_avatar(config, dataset.subject, dataset.pose_dim)
 
     work = work_directory(out)
     work.mkdir(parents=True, exist_ok=True)

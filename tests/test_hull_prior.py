@@ -25,7 +25,7 @@ from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
 from stages.synth import SynthOptions, run_synth
 from stages.train import TrainOptions, run_train
-from test_visual_hull import BOX, CENTRES, FRONT, RADIUS, UP, sphere_masks, true_sdf
+from test_visual_hull import BOX, CENTRES, FRONT, RADIUS, UP, sphere_masks
 
 
 def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():

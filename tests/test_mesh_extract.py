@@ -16,7 +16,7 @@ import trimesh
 
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import clean_mesh, connected_components, is_watertight, vertex_normals
-from igavatar.mesh.extract import extract_mesh
+from igavatar.geometry.extract import extract_mesh
 
 BOX_MIN = np.array([-1.0, -1.0, -1.0])
 BOX_MAX = np.array([1.0, 1.0, 1.0])

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 import torch
 
 from igavatar.artifacts.manifest import read_artifact

@@ -92,6 +92,15 @@ class DatasetArtifact:
         return height, width
 
     @property
+    def pose_dim(self) -> int:
+        """P, the size of a frame's pose conditioning."""
+        return int(self.data["pose_dim"])
+
+    @property
+    def joint_names(self) -> list[str]:
+        return list(self.data["joint_names"])
+
+    @property
     def splits(self) -> dict[str, list[str]]:
         return self.data["splits"]
 

@@ -18,7 +18,7 @@ from igavatar.artifacts.manifest import read_artifact
 from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
 from igavatar.body.motions import SKELETON_KINDS, body_to_world
 from igavatar.body.skeleton import Skeleton
-from igavatar.capture.subject import PosedFrames, pose_frames
+from igavatar.capture.posed_subject import PosedFrames, pose_frames
 from igavatar.model.avatar import Avatar
 from igavatar.model.posed import PosedAvatar
 from igavatar.render.occupancy import OccupancyGrid
@@ -37,6 +37,29 @@ def build_avatar(config: TrainConfig, subject: SubjectArrays, pose_dim: int) -> 
         pose_dim=pose_dim,
         init_bones=tuple(int(i) for i in subject.init_bones),
     )
+
+
+@dataclass(frozen=True)
+class ModelManifest:
+    """A model artifact's manifest, read without loading the network (for checks before the load)."""
+
+    path: Path
+    manifest: dict
+
+    @property
+    def canonical_box(self) -> list[list[float]]:
+        """(2, 3) canonical box, metres."""
+        return self.manifest["data"]["canonical_box"]
+
+    @property
+    def recorded_dataset(self) -> Path:
+        """The dataset path recorded at training (relative to where `train` ran)."""
+        return Path(self.manifest["data"]["dataset"])
+
+
+def read_model_manifest(path: Path, check_hashes: bool = True) -> ModelManifest:
+    """Read and check a model artifact's manifest (kind, version, schema and, by default, file hashes)."""
+    return ModelManifest(Path(path), read_artifact(Path(path), expected="model", check_hashes=check_hashes))
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,7 +6,7 @@
     colours = vertex_colors(avatar, vertices)                         # (V, 3) uint8
     world = posed.pose_vertices(vertices)                             # see igavatar.model.posed
 
-Extraction is igavatar.mesh.extract (coarse grid, then a fine narrow band); `progress`, when
+Extraction is igavatar.geometry.extract (coarse grid, then a fine narrow band); `progress`, when
 given, is called as progress(points_done, points_total).
 """
 
@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from igavatar.mesh.extract import extract_mesh
+from igavatar.geometry.extract import extract_mesh
 from igavatar.model.avatar import Avatar
 from igavatar.model.posed import PosedAvatar
 from igavatar.skinning.grid import sample_skinning_weights

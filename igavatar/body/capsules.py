@@ -25,7 +25,7 @@ from igavatar.body.bones import bone_segments, leaf_lengths, leg_scale, skeleton
 from igavatar.body.motions import semantic_joint_map
 from igavatar.body.skeleton import Skeleton
 from igavatar.errors import InputError
-from igavatar.mesh.extract import extract_mesh
+from igavatar.geometry.extract import extract_mesh
 
 #: Capsule radius (m, adult scale) around the segments each semantic part's joint moves. Torso
 #: capsules are round where a torso is elliptic: they trade a little extra depth for width.
@@ -143,7 +143,7 @@ def posed_capsule_boxes(capsules: Capsules, bone_transforms: torch.Tensor) -> to
 
 
 def capsule_mesh(capsules: Capsules, voxel_m: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh of the capsule union by marching cubes (igavatar.mesh.extract).
+    """Mesh of the capsule union by marching cubes (igavatar.geometry.extract).
 
     Args:
         capsules: from skeleton_capsules.

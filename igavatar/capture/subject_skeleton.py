@@ -18,7 +18,7 @@ from igavatar.body.motions import body_to_world, semantic_joint_map
 from igavatar.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from igavatar.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton
 from igavatar.capture.capture_v1 import CaptureV1
-from igavatar.capture.subject import PosedSubject, major_bones
+from igavatar.capture.posed_subject import PosedSubject, major_bones
 from igavatar.errors import InputError
 
 #: Hip abduction (rad) of the canonical star pose, per skeleton kind: Fast-SNARF's 0.5 for SMPL's

@@ -18,7 +18,7 @@ import torch
 
 from igavatar.body.smpl_model import load_smpl_model, require_smpl_model, smpl_local_rotations, smpl_star_pose
 from igavatar.capture.capture_v1 import CaptureV1
-from igavatar.capture.subject import PosedSubject, major_bones
+from igavatar.capture.posed_subject import PosedSubject, major_bones
 
 
 def smpl_model_for(capture: CaptureV1, smpl_model: Path | None) -> Path:
