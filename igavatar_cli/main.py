@@ -142,7 +142,7 @@ def synth(
     ] = None,
     garment: Annotated[str, typer.Option(help="Garment variant: shirt-trousers, dress, tight.")] = "shirt-trousers",
     texture: Annotated[str, typer.Option(help="Texture variant: stripes, checker, plain.")] = "stripes",
-    seed: Annotated[int, typer.Option(help="Random seed (motion jitter, colours).")] = 0,
+    seed: Annotated[int, typer.Option(help="Random seed (motion jitter, colors).")] = 0,
     skeleton: Annotated[str, typer.Option(
         help="How the poses are written: anny (the body model), bare (its joints as a bare skeleton, no template) "
              "or root (a static subject: one root joint, held still while it turns; needs --test-frames 0).")] = "anny",
@@ -266,7 +266,7 @@ def export(
     model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\[default: RUN_DIR/mesh].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
-    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colours), glb (rigged, Y-up; with --pose animated).")] = "ply,obj,glb",
+    formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colors), glb (rigged, Y-up; with --pose animated).")] = "ply,obj,glb",
     resolution: Annotated[
         int, typer.Option(help="Marching-cubes samples on the longest axis of the surface box (the paper's 512; ~20-45 s on 2 CPU cores).", min=16)
     ] = 512,
@@ -280,7 +280,7 @@ def export(
         int, typer.Option(help="Skin weights per vertex in the GLB: 4 (JOINTS_0; web engines) or 8 (JOINTS_0/1; Blender).")
     ] = 4,
     texture_size: Annotated[
-        int, typer.Option(help="Also write textured/avatar.glb|.obj|.png: decimated, UV-unwrapped, colour baked into an SxS texture (e.g. 1024 or 2048; 0: none).", min=0)
+        int, typer.Option(help="Also write textured/avatar.glb|.obj|.png: decimated, UV-unwrapped, color baked into an SxS texture (e.g. 1024 or 2048; 0: none).", min=0)
     ] = 0,
     textured_faces: Annotated[int, typer.Option(help="Face budget of the textured mesh (quadric decimation).", min=4)] = 30_000,
     pose: Annotated[

@@ -16,9 +16,9 @@ Animation layout (schema `animation`, version 1):
     poses.npz            the driving motion as a skeleton pose sequence: parents (J,), rest_joints
                          (J,3), joint_names (J,), rotvecs (N,J,3) relative to the rest pose, transl (N,3)
     boxes.npz            posed_boxes (N,2,3) world boxes the frames were rendered in
-    meshes/<NNNN>.ply    with --meshes: the posed surface per frame (world coordinates, vertex colours)
+    meshes/<NNNN>.ply    with --meshes: the posed surface per frame (world coordinates, vertex colors)
     animation.glb        with --glb: the rigged avatar (canonical surface at --mesh-resolution, vertex
-                         colours, top-4 or --influences 8 skin weights, glTF's +Y-up frame) holding the
+                         colors, top-4 or --influences 8 skin weights, glTF's +Y-up frame) holding the
                          motion as one glTF animation clip: a rotation channel per joint and the root's
                          translation, one LINEAR key per frame at the motion's fps. The manifest gives,
                          per frame, how far the viewer's top-4 and top-8 skinning land from igavatar's
@@ -183,7 +183,7 @@ def _ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> b
 
 @dataclass(frozen=True)
 class _Surface:
-    """The cleaned canonical mesh of --meshes/--glb: (V, 3), (F, 3), (V, 3) uint8 colours, (V, J) weights."""
+    """The cleaned canonical mesh of --meshes/--glb: (V, 3), (F, 3), (V, 3) uint8 colors, (V, J) weights."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -192,7 +192,7 @@ class _Surface:
 
 
 def _canonical_surface(model: ModelArtifact, options: AnimateOptions) -> _Surface:
-    """Canonical mesh (largest component), its vertex colours and, for --glb, its skin weights."""
+    """Canonical mesh (largest component), its vertex colors and, for --glb, its skin weights."""
     vertices, faces = canonical_mesh(model.avatar, resolution=options.mesh_resolution)
     if faces.shape[0] == 0:
         raise InputError(f"--meshes/--glb: the model {model.path} has no surface (its SDF never crosses zero); train it longer")

@@ -10,8 +10,8 @@ Report layout (schema `report`, version 1):
     report.md                 means, scan matching, a per-frame table, notes, the paper's numbers
     plots/metric_curves.png   per-frame curve of every metric (OpenCV; matplotlib is not a dependency)
     images/<frame>.png        ground truth | render | mean absolute RGB error (JET, red >= 0.25)
-    geometry/<frame>.png      scan | posed prediction coloured by its distance to the scan | legend
-    geometry/worst_<frame>.ply  the worst frame's posed prediction with those vertex colours
+    geometry/<frame>.png      scan | posed prediction colored by its distance to the scan | legend
+    geometry/worst_<frame>.ply  the worst frame's posed prediction with those vertex colors
 
 What is compared (EVAL.md): the test frames of the dataset the model was trained on (their cameras,
 bone transforms, pose conditioning, images and masks). The prediction is the canonical mesh
@@ -20,10 +20,10 @@ in world coordinates; each frame is matched by name to `<gt>/<frame>.ply|.obj`. 
 an extra one is listed in the report, never skipped silently. Images are rendered on white and
 compared with the ground truth composited on white through its mask.
 
-Error colours: the mesh panels colour every predicted vertex by its distance to the scan (exact
+Error colors: the mesh panels color every predicted vertex by its distance to the scan (exact
 distance to the faces near it, found through a k-d tree of scan samples; see
 `igavatar.metrics.frame_geometry.vertex_distance_to_scan`) and ray cast both meshes from the test camera (Embree). A PLY with the same
-colours is written only for the worst frame (30 coloured meshes would dwarf the report).
+colors is written only for the worst frame (30 colored meshes would dwarf the report).
 """
 
 from __future__ import annotations
@@ -70,9 +70,9 @@ from stages.kernels import build_kernels, resolve_device
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes, require_marching_memory
 
-#: Distance (mm) shown fully red in the error-coloured mesh panels.
+#: Distance (mm) shown fully red in the error-colored mesh panels.
 ERROR_VMAX_MM = 20.0
-#: Longest side (pixels) of the error-coloured mesh panels.
+#: Longest side (pixels) of the error-colored mesh panels.
 ERROR_PANEL_MAX_SIDE = 512
 #: Mean absolute RGB error shown fully red in the image panels.
 IMAGE_ERROR_VMAX = 0.25
@@ -345,7 +345,7 @@ def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, ca
 
 def _write_figures(tmp: Path, document: dict, records: list[dict], names: list[str],
                    worst: tuple[float, str, np.ndarray, np.ndarray] | None, canonical: _CanonicalGeometry | None) -> None:
-    """Per-frame curves, the worst frame's coloured mesh and the canonical views; listed in document["files"]."""
+    """Per-frame curves, the worst frame's colored mesh and the canonical views; listed in document["files"]."""
     series = {k: [r["values"][k] for r in records] for k in METRIC_KEYS if any(r["values"][k] is not None for r in records)}
     if series:
         curves = metric_curves_image(names, series, {k: document["metrics"][k]["mean"] for k in series})
@@ -353,9 +353,9 @@ def _write_figures(tmp: Path, document: dict, records: list[dict], names: list[s
         document["files"]["per-frame curves"] = "plots/metric_curves.png"
     if worst is not None:
         _, name, posed_v, error_mm = worst
-        colours = (error_colors(error_mm, ERROR_VMAX_MM) * 255).round().astype(np.uint8)
-        trimesh.Trimesh(posed_v, canonical.faces, vertex_colors=colours, process=False).export(tmp / "geometry" / f"worst_{name}.ply")
-        document["files"]["worst frame mesh (vertex colours = distance to scan)"] = f"geometry/worst_{name}.ply"
+        colors = (error_colors(error_mm, ERROR_VMAX_MM) * 255).round().astype(np.uint8)
+        trimesh.Trimesh(posed_v, canonical.faces, vertex_colors=colors, process=False).export(tmp / "geometry" / f"worst_{name}.ply")
+        document["files"]["worst frame mesh (vertex colors = distance to scan)"] = f"geometry/worst_{name}.ply"
     if canonical is not None and canonical.section is not None:
         document["canonical"] = canonical.section
     if canonical is not None and canonical.picture is not None:

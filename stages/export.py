@@ -4,23 +4,23 @@
     summary = run_export(ExportOptions(model=..., out=..., pose=Path("run/capture"), all_frames=True, exr=True))
 
 Mesh layout (schema `mesh`, version 1; every position in metres):
-    canonical.ply, canonical.obj   the canonical-space surface with sRGB vertex colours
+    canonical.ply, canonical.obj   the canonical-space surface with sRGB vertex colors
     canonical.glb                  rigged: the same mesh, the skeleton (joints named, bind pose = the
                                    canonical pose), the 4 (--influences 8: 8, as JOINTS_0/1) largest
-                                   skinning weights per vertex and the vertex colours, in glTF's
+                                   skinning weights per vertex and the vertex colors, in glTF's
                                    +Y-up, +Z-forward frame (the capture's axes rotated in, see
                                    igavatar.mesh.gltf); with --pose it also holds the exported frames
                                    as an animation (linear blend skinning only: no non-rigid offset)
     textured/avatar.glb|.obj|.mtl|.png   --texture-size S: the canonical mesh decimated to
                                    --textured-faces (pymeshlab quadric), UV-unwrapped (xatlas), the
-                                   colour field baked per texel into an S x S PNG (seams dilated);
+                                   color field baked per texel into an S x S PNG (seams dilated);
                                    the GLB is rigged (and animated) like canonical.glb; both Y-up
     posed/<frame>.ply|.obj         the avatar in each exported pose, in WORLD coordinates (root
                                    transform applied): forward LBS of the canonical mesh plus the
                                    pose-conditioned non-rigid offset; same faces as canonical
     posed/<frame>.marched.ply      --posed-marching: marching cubes in posed space through the deformer
     maps/<view>.exr                --exr: Z (camera depth in m, 0 where empty), N (unit world-space
-                                   normals), A (coverage 0/1), RGB (linear colour) of the exported mesh
+                                   normals), A (coverage 0/1), RGB (linear color) of the exported mesh
     maps/cameras.npz               names (M,), K (M,3,3), w2c (M,4,4), height, width of those views
 
 The canonical surface is marching cubes of the SDF intersected with the canonical box (the hash
@@ -216,7 +216,7 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, options: ExportOptions) -> t
 
 
 def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> None:
-    """PLY (binary) or OBJ with per-vertex sRGB colours, by the suffix."""
+    """PLY (binary) or OBJ with per-vertex sRGB colors, by the suffix."""
     path.parent.mkdir(parents=True, exist_ok=True)
     mesh = trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
     if path.suffix == ".obj":
@@ -251,7 +251,7 @@ class _Canonical:
 
 
 def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, progress: ProgressSink) -> _Canonical:
-    """Extract, clean and colour the canonical surface (and weigh it for the GLB)."""
+    """Extract, clean and color the canonical surface (and weigh it for the GLB)."""
     avatar = model.avatar
     with clock("extract_s"), _marching_progress(progress, "marching cubes (canonical)") as report:
         raw_vertices, raw_faces = canonical_surface(avatar, options.resolution, options.coarse_resolution, report)
@@ -457,7 +457,7 @@ def _summary(out: Path, device: torch.device, options: ExportOptions, canonical:
 
 
 def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
-    """Extract, clean, colour, rig and (with --pose) pose the avatar's mesh; write the mesh artifact.
+    """Extract, clean, color, rig and (with --pose) pose the avatar's mesh; write the mesh artifact.
 
     Returns a JSON-able summary. Raises InputError / ArtifactError / BodyModelError /
     NotAvailableError for problems a user can fix; nothing is written then.

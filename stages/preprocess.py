@@ -7,7 +7,7 @@ Dataset layout (schema `dataset`, version 1):
     masks/<frame>.png    0/255: the capture's masks, or when it has none, GrabCut's around the posed
                          body (manifest data "masks": "given" | "estimated (grabcut)")
     frames.npz           frame_names (N,), K (N,3,3), w2c (N,4,4), bone_transforms (N,J,4,4)
-                         canonical -> posed world, pose_condition (N,P), posed_boxes (N,2,3),
+                         canonical -> posed world, pose_condition (N,pose_dim), posed_boxes (N,2,3),
                          posed_joints (N,J,3), is_train (N,), is_test (N,)
     subject.npz          parents (J,), rest_joints (J,3), canonical_joints (J,3), joint_names (J,),
                          canonical_rotations (J,3,3) of the canonical pose relative to the rest pose,

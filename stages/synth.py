@@ -70,7 +70,7 @@ class SynthOptions:
         phenotype: Anny phenotype overrides as "label=value" strings, values in [0, 1].
         garment: outfit, one of igavatar.synth.garments.GARMENTS.
         texture: texture style, one of igavatar.synth.texture.TEXTURES.
-        seed: seeds colours, printed text, motion jitter and test-motion yaw.
+        seed: seeds colors, printed text, motion jitter and test-motion yaw.
         skeleton: how the poses are written (see SKELETONS): "anny" (the body model, the default),
             "bare" (Anny's joints as a bare skeleton, no body model: the skeleton-only path), or
             "root" (a static subject: one root joint, the body held still in the A-pose while

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 
 def write_tiny_capture(root: Path, n_frames: int = 3, size: int = 16, body_model: str = "skeleton") -> Path:
-    """Write a minimal, valid capture v1 (skeleton body model) with solid-colour images and masks."""
+    """Write a minimal, valid capture v1 (skeleton body model) with solid-color images and masks."""
     root.mkdir(parents=True, exist_ok=True)
     frames = [f"f{i:03d}" for i in range(n_frames)]
     (root / "images").mkdir()

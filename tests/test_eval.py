@@ -252,7 +252,7 @@ def test_metric_curves_draw_values_and_gaps():
         metric_curves_image(["a"], {"psnr": [1.0]})
 
 
-def test_error_colours_and_mesh_panel_follow_the_distance():
+def test_error_colors_and_mesh_panel_follow_the_distance():
     np.testing.assert_allclose(error_colors(np.array([0.0]), 20.0)[0], [0, 0, 128 / 255], atol=1e-9)
     assert np.argmax(error_colors(np.array([25.0]), 20.0)[0]) == 0  # red past vmax
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)

@@ -214,7 +214,7 @@ def test_local_pose_from_bone_transforms_inverts_pose_frames():
 # A trained tiny model
 
 
-def test_export_writes_a_valid_closed_coloured_mesh_artifact(posed_export, small_run):
+def test_export_writes_a_valid_closed_colored_mesh_artifact(posed_export, small_run):
     manifest = read_artifact(posed_export, expected="mesh")
     data = manifest["data"]
     canonical = data["canonical"]
@@ -285,8 +285,8 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     axes = gltf_axes("anny")  # the GLB is Y-up: canonical vertices rotated from the capture's Z-up frame
     np.testing.assert_allclose(geometry.vertices, canonical.vertices @ axes.T, atol=1e-6)
     # With a material, trimesh keeps COLOR_0 (linear, as glTF stores it) as a vertex attribute.
-    colours = np.round(linear_to_srgb(geometry.visual.vertex_attributes["color"]) * 255)
-    assert np.abs(colours - np.asarray(canonical.visual.vertex_colors)[:, :3]).max() <= 1
+    colors = np.round(linear_to_srgb(geometry.visual.vertex_attributes["color"]) * 255)
+    assert np.abs(colors - np.asarray(canonical.visual.vertex_colors)[:, :3]).max() <= 1
 
     # The known pose: frame k of the capture, through the Anny adapter, relative to the canonical pose.
     capture = read_capture_v1(small_run / "capture")
@@ -363,7 +363,7 @@ def test_eight_influences_and_drift_per_frame(small_run, tiny_model, tmp_path):
     assert gap.max() == pytest.approx(frame["glb_drift_mm"]["8"]["max"], abs=0.05)
 
 
-def test_textured_export_bakes_the_colour_field_and_rigs_the_decimated_mesh(small_run, tiny_model, tmp_path):
+def test_textured_export_bakes_the_color_field_and_rigs_the_decimated_mesh(small_run, tiny_model, tmp_path):
     import cv2
 
     from igavatar.avatar.surfaces import surface_colors
@@ -382,7 +382,7 @@ def test_textured_export_bakes_the_colour_field_and_rigs_the_decimated_mesh(smal
     gltf = pygltflib.GLTF2().load(str(out / "textured" / "avatar.glb"))
     assert gltf.materials[0].pbrMetallicRoughness.baseColorTexture.index == 0
     assert gltf.images[0].mimeType == "image/png" and len(gltf.animations) == 1
-    # The texture at each vertex's UV is the colour field at that (canonical) vertex.
+    # The texture at each vertex's UV is the color field at that (canonical) vertex.
     image = cv2.cvtColor(cv2.imread(str(out / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
     texel = glb["uv"] * 128 - 0.5
     sampled = cv2.remap(image, texel[:, 0].astype(np.float32)[None], texel[:, 1].astype(np.float32)[None],

@@ -188,7 +188,7 @@ def test_color_field_range_and_shapes():
 
 
 def test_fields_chain_together():
-    """SDF feature + analytic normal -> colour, and distance -> density, all differentiable."""
+    """SDF feature + analytic normal -> color, and distance -> density, all differentiable."""
     field = make_field()
     color = ColorField(ColorFieldConfig(feature_dim=16))
     density = LaplaceDensity()

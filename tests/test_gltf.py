@@ -230,7 +230,7 @@ def test_round_trip_pygltflib_and_trimesh(tmp_path, avatar):
     assert data["joint_names"] == NAMES
     np.testing.assert_array_equal(data["parents"], PARENTS)
     np.testing.assert_allclose(data["joints_bind"], to_gltf(avatar.joints_canonical), atol=1e-6)
-    # Colours are stored linear (glTF) and come back as the sRGB values written.
+    # Colors are stored linear (glTF) and come back as the sRGB values written.
     np.testing.assert_array_equal(np.round(data["colors"] * 255).astype(np.uint8), avatar.colors)
     np.testing.assert_allclose(data["weights"].sum(axis=1), 1.0, atol=3e-7)
     joints, weights = top_k_weights(avatar.weights)

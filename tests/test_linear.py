@@ -90,9 +90,9 @@ def test_padding_the_input_rows_changes_nothing_but_the_shape():
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
 
 
-def test_colour_and_nonrigid_fields_agree_with_kernels_off_and_on():
+def test_color_and_nonrigid_fields_agree_with_kernels_off_and_on():
     torch.manual_seed(0)
-    colour = ColorField(ColorFieldConfig())
+    color = ColorField(ColorFieldConfig())
     nonrigid = NonRigidOffset(NonRigidConfig(pose_dim=4))
     nonrigid.set_enabled(True)
     nonrigid.set_window(1.0)
@@ -105,11 +105,11 @@ def test_colour_and_nonrigid_fields_agree_with_kernels_off_and_on():
     results = {}
     for enabled in (False, True):
         kernels.set_kernels_enabled(enabled)
-        colour.zero_grad()
+        color.zero_grad()
         nonrigid.zero_grad()
-        rgb, offset = colour(feature, normal), nonrigid(x, pose)
+        rgb, offset = color(feature, normal), nonrigid(x, pose)
         (rgb.square().sum() + offset.square().sum() * 100).backward()
-        grads = [p.grad.clone() for p in (*colour.parameters(), *nonrigid.parameters())]
+        grads = [p.grad.clone() for p in (*color.parameters(), *nonrigid.parameters())]
         results[enabled] = (rgb.detach(), offset.detach(), *grads)
         feature.grad = x.grad = None
     for got, want in zip(results[True], results[False]):

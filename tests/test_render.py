@@ -13,7 +13,7 @@ from igavatar.render.volume import FieldOutput, render_image, render_rays
 
 RADIUS = 0.5
 BETA = 0.002
-COLOUR = torch.tensor([0.2, 0.4, 0.6])
+COLOR = torch.tensor([0.2, 0.4, 0.6])
 
 
 def random_rotation(gen: torch.Generator) -> torch.Tensor:
@@ -30,13 +30,13 @@ def laplace_density(sdf: torch.Tensor, beta: float) -> torch.Tensor:
 
 
 def sphere_field(x: torch.Tensor) -> FieldOutput:
-    """Analytic sphere of RADIUS at the origin: SDF |x| - r, gradient x / |x|, constant colour."""
+    """Analytic sphere of RADIUS at the origin: SDF |x| - r, gradient x / |x|, constant color."""
     norm = torch.linalg.vector_norm(x, dim=-1)
     sdf = norm - RADIUS
     gradient = x / norm.clamp_min(1e-9)[:, None]
     return FieldOutput(
         sigma=laplace_density(sdf, BETA),
-        rgb=COLOUR.to(x).expand(x.shape[0], 3),
+        rgb=COLOR.to(x).expand(x.shape[0], 3),
         gradient=gradient,
         sdf=sdf,
     )
@@ -132,15 +132,15 @@ def uniform_medium_rays(r: int, gen: torch.Generator) -> RayBundle:
     return RayBundle(origins, directions, near, far)
 
 
-def test_uniform_medium_opacity_colour_and_gradient_closed_form() -> None:
+def test_uniform_medium_opacity_color_and_gradient_closed_form() -> None:
     """Constant density c on [near, far]: opacity = 1 - exp(-c L) whatever the sampling."""
     gen = torch.Generator().manual_seed(2)
     rays = uniform_medium_rays(16, gen)
     log_c = torch.tensor(math.log(1.7), requires_grad=True)
-    colour = torch.tensor([0.9, 0.1, 0.3])
+    color = torch.tensor([0.9, 0.1, 0.3])
 
     def field(x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return {"sigma": log_c.exp().expand(x.shape[0]), "rgb": colour.expand(x.shape[0], 3)}
+        return {"sigma": log_c.exp().expand(x.shape[0]), "rgb": color.expand(x.shape[0], 3)}
 
     samples = sample_along_rays(rays, 37, generator=gen)
     background = torch.rand(16, 3, generator=gen)
@@ -148,7 +148,7 @@ def test_uniform_medium_opacity_colour_and_gradient_closed_form() -> None:
     length = rays.far - rays.near
     expected_opacity = 1.0 - torch.exp(-1.7 * length)
     assert torch.allclose(out.opacity, expected_opacity, atol=1e-5)
-    expected_rgb = colour * expected_opacity[:, None] + background * (1 - expected_opacity)[:, None]
+    expected_rgb = color * expected_opacity[:, None] + background * (1 - expected_opacity)[:, None]
     assert torch.allclose(out.rgb, expected_rgb, atol=1e-5)
     # d opacity / d log c = c L exp(-c L)
     out.opacity.sum().backward()
@@ -287,7 +287,7 @@ def test_sphere_opacity_and_background(sphere_render: dict) -> None:
     assert misses.sum() > 50
     assert (out.opacity[hits] > 0.999).all()
     assert (out.opacity[misses] < 1e-3).all()
-    assert torch.allclose(out.rgb[hits], COLOUR.expand(int(hits.sum()), 3), atol=1e-3)
+    assert torch.allclose(out.rgb[hits], COLOR.expand(int(hits.sum()), 3), atol=1e-3)
     assert torch.allclose(out.rgb[misses], torch.ones(int(misses.sum()), 3), atol=1e-3)
     # Per-sample extras for the losses: analytic SDF gradients are unit on valid samples.
     grads = out.gradient[out.valid]

@@ -74,7 +74,7 @@ def test_grabcut_drops_islands_that_do_not_touch_the_sure_subject():
     truth = np.zeros((SIZE, SIZE), bool)
     truth[30:70, 40:56] = True
     image_subject = truth.copy()
-    image_subject[5:9, 5:9] = True  # a subject-coloured blob far from the body
+    image_subject[5:9, 5:9] = True  # a subject-colored blob far from the body
     probable = truth.copy()
     probable[5:9, 5:9] = True  # even if seeded probable, it is not connected to the sure core
     sure = np.zeros_like(truth)

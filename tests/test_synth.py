@@ -169,7 +169,7 @@ def test_same_config_is_skipped_and_seed_is_deterministic(capture, tmp_path):
 
 
 def test_bad_options_raise_input_error(tmp_path):
-    for item, words in [("gender=1.5", "outside [0, 1]"), ("colour=0.2", "valid labels"), ("gender", "label=value"),
+    for item, words in [("gender=1.5", "outside [0, 1]"), ("color=0.2", "valid labels"), ("gender", "label=value"),
                         ("age=old", "not a number")]:
         with pytest.raises(InputError, match=words.replace("[", r"\[").replace("]", r"\]")):
             run_synth(SynthOptions(out=tmp_path / "c", phenotype=(item,)))
@@ -227,12 +227,12 @@ def test_texture_is_periodic_in_canonical_space_and_plain_is_flat(body):
     assert np.ptp(stripes.albedo(x, regions), axis=0).max() > 0.3  # the stripes are there
     plain = make_texture("plain", 0, stripes.landmarks)
     assert np.ptp(plain.albedo(x, regions), axis=0).max() == 0.0
-    # The chest print: at least some points on the front of the chest take the print colour.
+    # The chest print: at least some points on the front of the chest take the print color.
     chest = stripes.landmarks.chest
     grid = np.stack(np.meshgrid(np.linspace(-0.07, 0.07, 60), np.linspace(-0.02, 0.02, 20)), -1).reshape(-1, 2)
     front = np.stack([chest[0] + grid[:, 0], np.full(len(grid), chest[1]), chest[2] + grid[:, 1]], axis=1)
-    colours = stripes.albedo(front, np.full(len(front), top))
-    assert np.isclose(colours, stripes.accents["print"], atol=0.02).all(axis=1).mean() > 0.1
+    colors = stripes.albedo(front, np.full(len(front), top))
+    assert np.isclose(colors, stripes.accents["print"], atol=0.02).all(axis=1).mean() > 0.1
     with pytest.raises(InputError, match="texture"):
         make_texture("polka", 0, stripes.landmarks)
 

@@ -1,4 +1,4 @@
-"""UV atlas (xatlas) and texture baking: an analytic colour gradient comes out in the texture.
+"""UV atlas (xatlas) and texture baking: an analytic color gradient comes out in the texture.
 
     .venv/bin/python -m pytest tests/test_texture.py -q
 """
@@ -17,7 +17,7 @@ SIZE = 256
 
 
 def gradient(points: np.ndarray) -> np.ndarray:
-    """A known colour field: R, G, B linear in x, y, z over the unit sphere's box."""
+    """A known color field: R, G, B linear in x, y, z over the unit sphere's box."""
     return np.clip((np.asarray(points) + 1.0) / 2.0, 0.0, 1.0)
 
 
@@ -49,7 +49,7 @@ def test_rasterized_barycentrics_reproduce_the_texel_centres(sphere_bake):
 
 def test_a_known_gradient_comes_out_in_the_texture(sphere_bake):
     """Random points on the surface: the texture sampled at their UV (bilinear, as a viewer does)
-    gives the gradient's colour at the point, to within quantisation and a texel of gradient."""
+    gives the gradient's color at the point, to within quantisation and a texel of gradient."""
     _, atlas, vertices, image, _ = sphere_bake
     rng = np.random.default_rng(0)
     faces = rng.integers(0, atlas.faces.shape[0], 2000)
@@ -63,19 +63,19 @@ def test_a_known_gradient_comes_out_in_the_texture(sphere_bake):
     error = np.abs(sampled - expected)
     # The field changes by ~|grad| x (a texel in 3D) ~ 0.5 x 0.02 between texels; quantisation 1/510.
     assert error.mean() < 0.01 and error.max() < 0.05, (error.mean(), error.max())
-    # Not trivially right: a texture of one colour would be far off.
+    # Not trivially right: a texture of one color would be far off.
     assert np.abs(expected - expected.mean(axis=0)).mean() > 0.1
 
 
-def test_dilation_fills_seams_with_the_neighbouring_colour():
+def test_dilation_fills_seams_with_the_neighbouring_color():
     image = np.zeros((8, 8, 3))
     covered = np.zeros((8, 8), dtype=bool)
     image[2:4, 2:4] = (1.0, 0.5, 0.25)
     covered[2:4, 2:4] = True
     out = dilate(image, covered, rings=1)
-    np.testing.assert_allclose(out[1, 1], (1.0, 0.5, 0.25))  # one ring: the chart's colour
+    np.testing.assert_allclose(out[1, 1], (1.0, 0.5, 0.25))  # one ring: the chart's color
     np.testing.assert_allclose(out[2:4, 2:4], image[2:4, 2:4])  # covered texels are untouched
-    # Beyond the rings: the mean of the covered colours, never the black background.
+    # Beyond the rings: the mean of the covered colors, never the black background.
     np.testing.assert_allclose(out[7, 7], (1.0, 0.5, 0.25))
 
 

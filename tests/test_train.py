@@ -89,7 +89,7 @@ def test_every_learned_part_is_optimised_including_non_rigid(small_run):
 
 
 @pytest.mark.parametrize("regularizer", ["none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe"])
-def test_ablation_regularisers_train(small_run, regularizer):
+def test_ablation_regularizers_train(small_run, regularizer):
     from igavatar.training.config import with_overrides
 
     config = with_overrides(dataclasses.replace(preset("tiny"), steps=8), regularizer=regularizer)
@@ -136,7 +136,7 @@ def test_cli_train_on_a_capture_is_the_wrong_artifact_kind(small_run, cli_runner
     assert not (tmp_path / "m").exists()
 
 
-def test_unknown_preset_and_regulariser(small_run, cli_runner, tmp_path):
+def test_unknown_preset_and_regularizer(small_run, cli_runner, tmp_path):
     for args, message in ((["--preset", "huge"], "unknown"), (["--regularizer", "magic"], "expected one of")):
         result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "m"), *args])
         assert result.exit_code == 2 and message in result.output

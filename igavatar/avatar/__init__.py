@@ -6,6 +6,6 @@
 
 Modules: subject (subject.npz), dataset (dataset artifact), model (model artifact),
 pose_files (pose I/O and retargeting), poses (every pose source -> PoseSequence),
-boxes (posed bounds), surfaces (canonical/posed meshes and their colours and weights).
+boxes (posed bounds), surfaces (canonical/posed meshes and their colors and weights).
 This package sits on top of the library: it may import any igavatar package; none imports it.
 """

@@ -28,13 +28,13 @@ FRAMES_FILE = "frames.npz"
 
 @dataclass(frozen=True, eq=False)
 class DatasetFrames:
-    """frames.npz: N frames of J joints, pose conditioning of size P (float32 unless stated).
+    """frames.npz: N frames of J joints, pose conditioning of size pose_dim (float32 unless stated).
 
     Attributes:
         names: N frame names (images/<name>.png, masks/<name>.png).
         K: (N, 3, 3) intrinsics at the dataset's resolution; w2c: (N, 4, 4) world -> camera.
         bone_transforms: (N, J, 4, 4) canonical -> posed world.
-        pose_condition: (N, P) conditioning of the non-rigid offset.
+        pose_condition: (N, pose_dim) conditioning of the non-rigid offset.
         posed_boxes: (N, 2, 3) world boxes that bound the posed subject.
         posed_joints: (N, J, 3) world joints.
         is_train, is_test: (N,) bool splits.

@@ -140,7 +140,7 @@ class ModelArtifact:
         )
 
     def posed(self, bone_transforms: torch.Tensor, pose_condition: torch.Tensor) -> PosedAvatar:
-        """The avatar in one frame: (J, 4, 4) canonical -> world transforms, (P,) conditioning."""
+        """The avatar in one frame: (J, 4, 4) canonical -> world transforms, (pose_dim,) conditioning."""
         return PosedAvatar.of(self.avatar, torch.as_tensor(bone_transforms).float(), torch.as_tensor(pose_condition).float())
 
 

@@ -2,7 +2,7 @@
 
     poses = procedural_poses(model, "walk", n_frames=60, seed=0, fps=30.0)
     poses = read_poses(model, Path("poses.npz"), select=lambda n, where: list(range(n)))
-    poses.bone_transforms (N, J, 4, 4), poses.pose_condition (N, P), poses.local_rotations (N, J, 3, 3)
+    poses.bone_transforms (N, J, 4, 4), poses.pose_condition (N, pose_dim), poses.local_rotations (N, J, 3, 3)
 
 Sources: a procedural motion (igavatar.body.motions), a pose file in any format of
 igavatar.body.pose_files (retargeted to the model's skeleton there), a capture directory (its
@@ -42,7 +42,7 @@ class PoseSequence:
         name: the motion's name or the source's file name; source: "procedural" or the path read.
         frame_names: N names (a pose file's or dataset's frame names, else 0000, 0001, ...).
         local_rotations: (N, J, 3, 3) relative to the rest pose; root_translation: (N, 3) metres.
-        bone_transforms: (N, J, 4, 4) canonical -> posed world; pose_condition: (N, P);
+        bone_transforms: (N, J, 4, 4) canonical -> posed world; pose_condition: (N, pose_dim);
         posed_joints: (N, J, 3) world joints.
         fps: playback rate; in_place: whether the motion stays over one spot.
         description: JSON-able facts for manifests (format, skeleton, source frames, indices).

@@ -1,9 +1,9 @@
-"""The avatar's surface as a mesh: canonical and posed extraction, colours, skin weights.
+"""The avatar's surface as a mesh: canonical and posed extraction, colors, skin weights.
 
     vertices, faces = canonical_surface(avatar, resolution=256)      # closed by the canonical box
     vertices, faces = canonical_mesh(avatar, resolution=256)         # open where it leaves the box
     vertices, faces = posed_surface(posed, box_min, box_max, 128)    # marching in posed space
-    colours = vertex_colors(avatar, vertices)                         # (V, 3) uint8
+    colors = vertex_colors(avatar, vertices)                         # (V, 3) uint8
     world = posed.pose_vertices(vertices)                             # see igavatar.model.posed
 
 Extraction is igavatar.geometry.extract (coarse grid, then a fine narrow band); `progress`, when
@@ -95,26 +95,26 @@ def posed_surface(
 
 @torch.no_grad()
 def surface_colors(avatar: Avatar, points: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """sRGB (M, 3) float32 in [0, 1] of the colour field at canonical points (normals from the SDF)."""
+    """sRGB (M, 3) float32 in [0, 1] of the color field at canonical points (normals from the SDF)."""
     device = avatar.canonical_box.device
-    colours = []
+    colors = []
     for part in torch.from_numpy(np.asarray(points, np.float32)).split(chunk):
         _, feature, gradient = avatar.sdf_field.forward_with_gradient(part.to(device))
         normal = torch.nn.functional.normalize(gradient, dim=-1)
-        colours.append(avatar.color_field(feature, normal).cpu())
-    if not colours:
+        colors.append(avatar.color_field(feature, normal).cpu())
+    if not colors:
         return np.zeros((0, 3), np.float32)
-    return torch.cat(colours).clamp(0, 1).numpy()
+    return torch.cat(colors).clamp(0, 1).numpy()
 
 
 def vertex_colors(avatar: Avatar, vertices: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """RGB (V, 3) uint8 of the colour field at canonical vertices (normals from the SDF)."""
+    """RGB (V, 3) uint8 of the color field at canonical vertices (normals from the SDF)."""
     return (surface_colors(avatar, vertices, chunk) * 255).round().astype(np.uint8)
 
 
 @torch.no_grad()
 def posed_vertex_colors(posed: PosedAvatar, x_posed: np.ndarray) -> np.ndarray:
-    """RGB (V, 3) uint8 of the colour field at the canonical correspondences of world points."""
+    """RGB (V, 3) uint8 of the color field at the canonical correspondences of world points."""
     x = torch.from_numpy(np.asarray(x_posed, np.float32)).to(posed.device)
     return vertex_colors(posed.avatar, posed.canonical_points(x).cpu().numpy())
 

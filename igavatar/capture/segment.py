@@ -9,7 +9,7 @@ The posed body model says roughly where the subject is; the image says exactly. 
                        capsules of CAPSULE_RADIUS_M around the bones)
     probable background a band of CLOTHING_BAND_M around it (loose clothes and hair reach out)
     sure background    everything farther away
-GrabCut then fits colour models to both sides and cuts along image edges (OpenCV's iterated graph
+GrabCut then fits color models to both sides and cuts along image edges (OpenCV's iterated graph
 cut, Rother et al. 2004); of its foreground, only the parts connected to the sure subject are
 kept. Distances in metres become pixels at the body's depth in that camera.
 """
@@ -31,7 +31,7 @@ SURE_INSIDE_M = 0.03
 CAPSULE_RADIUS_M = 0.08
 #: Radius (m) of the sure-subject core along bones when there is no template mesh.
 CAPSULE_CORE_M = 0.02
-#: GrabCut iterations (colour model refits); more change little after about five.
+#: GrabCut iterations (color model refits); more change little after about five.
 GRABCUT_ITERATIONS = 5
 _SUBPIXEL_BITS = 4  # fixed-point bits of the rasteriser's vertex coordinates
 
@@ -131,7 +131,7 @@ def grabcut_mask(rgb: np.ndarray, labels: np.ndarray, iterations: int = GRABCUT_
     """(H, W) bool subject mask: GrabCut from seed `labels` (H, W) uint8 on `rgb` (H, W, 3) uint8.
 
     Only the box around the non-background seeds is cut (with a margin of sure background so that
-    the background colour model has samples); of the result, the connected parts that hold a sure
+    the background color model has samples); of the result, the connected parts that hold a sure
     subject pixel are kept (all of it when there is none).
     """
     height, width = labels.shape
@@ -143,7 +143,7 @@ def grabcut_mask(rgb: np.ndarray, labels: np.ndarray, iterations: int = GRABCUT_
     crop_labels = np.ascontiguousarray(labels[y0:y1, x0:x1])
     has_background = np.any((crop_labels == cv2.GC_BGD) | (crop_labels == cv2.GC_PR_BGD))
     if has_background:
-        # GrabCut works in BGR or RGB alike (it only models colours); OpenCV wants 3-channel uint8.
+        # GrabCut works in BGR or RGB alike (it only models colors); OpenCV wants 3-channel uint8.
         crop = np.ascontiguousarray(rgb[y0:y1, x0:x1])
         background_model, foreground_model = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
         cv2.grabCut(crop, crop_labels, None, background_model, foreground_model, iterations, cv2.GC_INIT_WITH_MASK)

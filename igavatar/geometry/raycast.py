@@ -150,7 +150,7 @@ class Rendering:
     """One rendered view.
 
     Attributes:
-        rgb: (H, W, 3) uint8 colour (background where nothing was hit).
+        rgb: (H, W, 3) uint8 color (background where nothing was hit).
         mask: (H, W) bool, coverage > 0.5 of the same samples that made `rgb`.
         coverage: (H, W) float32 fraction of the s x s samples that hit the mesh.
         depth: (H, W) float32 mean camera-space z of the hit samples, 0 where the mask is False.
@@ -180,7 +180,7 @@ def render_mesh(
     Args:
         caster: the mesh, in world coordinates.
         rays: the camera's sample rays (its K, w2c, size and s).
-        shade: colours the hits (see ShadeFunction); called once with every hit sample.
+        shade: colors the hits (see ShadeFunction); called once with every hit sample.
         background: RGB in [0, 1] where rays miss.
     Returns:
         a Rendering.

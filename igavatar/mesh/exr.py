@@ -1,4 +1,4 @@
-"""Float image maps (depth, normals, colour) as OpenEXR files, written atomically.
+"""Float image maps (depth, normals, color) as OpenEXR files, written atomically.
 
     write_exr(path, {"Z": depth (H, W), "N": normals (H, W, 3), "RGB": rgb (H, W, 3)})
     maps = read_exr(path)          # {"Z": (H, W), "N": (H, W, 3), "RGB": (H, W, 3)} float32

@@ -27,7 +27,7 @@ a pose relative to the skeleton's own rest pose (what forward_kinematics takes) 
 Root translation is an offset added to the root node's canonical position.
 
 Stored: POSITION (with min/max), NORMAL (unit), COLOR_0 (float RGB, linear as glTF requires; the
-colours given are sRGB and converted), indices (uint32), JOINTS_0/WEIGHTS_0 (the 4 largest weights
+colors given are sRGB and converted), indices (uint32), JOINTS_0/WEIGHTS_0 (the 4 largest weights
 per vertex renormalised to sum to 1; joints as uint8, or uint16 above 256 joints; with
 `influences=8` also JOINTS_1/WEIGHTS_1, the 8 largest summing to 1 over both sets), one skin, and
 optionally one animation (LINEAR keyframes: a rotation channel per joint, a translation channel
@@ -91,7 +91,7 @@ def gltf_pose(world_to_gltf: np.ndarray, rotations: np.ndarray, translation: np.
 
 
 # --------------------------------------------------------------------------------------------
-# Colour and weight helpers
+# Color and weight helpers
 
 
 def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
@@ -267,7 +267,7 @@ def write_rigged_glb(
         path: the .glb file to write.
         vertices: (V, 3) canonical positions in metres.
         faces: (F, 3) vertex indices, counter-clockwise seen from outside.
-        colors: (V, 3) sRGB colours, uint8 or float in [0, 1] (None with a texture).
+        colors: (V, 3) sRGB colors, uint8 or float in [0, 1] (None with a texture).
         joint_names: J names (node names in the file).
         parents: (J,) parent indices, -1 for the root at 0, parents before children.
         joints_canonical: (J, 3) joint positions in the canonical pose.
@@ -279,7 +279,7 @@ def write_rigged_glb(
             caller's frame like the vertices.
         influences: 4 (JOINTS_0/WEIGHTS_0) or 8 (also JOINTS_1/WEIGHTS_1).
         texture: optional (uv (V, 2) in [0, 1] with v down from the image's top row, as glTF
-            defines TEXCOORD_0; PNG bytes of the sRGB base colour). The image is embedded and
+            defines TEXCOORD_0; PNG bytes of the sRGB base color). The image is embedded and
             the material samples it; `colors` are then not stored (glTF would multiply them).
     """
     path = Path(path)
@@ -394,20 +394,20 @@ def write_rigged_glb(
     mesh_node = num_joints
     nodes.append(pygltflib.Node(name="avatar", mesh=0, skin=0))
 
-    colour = pygltflib.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
-    material = pygltflib.Material(name="vertex_colour" if uv is None else "texture", pbrMetallicRoughness=colour,
+    color = pygltflib.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
+    material = pygltflib.Material(name="vertex_color" if uv is None else "texture", pbrMetallicRoughness=color,
                                   doubleSided=False)
     images, textures, samplers = [], [], []
     if uv is not None:
         builder.blob.extend(b"\0" * (-len(builder.blob) % 4))
         builder.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(builder.blob), byteLength=len(png)))
         builder.blob.extend(bytes(png))
-        images = [pygltflib.Image(name="base_colour", mimeType="image/png", bufferView=len(builder.views) - 1)]
+        images = [pygltflib.Image(name="base_color", mimeType="image/png", bufferView=len(builder.views) - 1)]
         # Linear filtering with mipmaps; clamp, since the atlas charts never wrap.
         samplers = [pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
                                       wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)]
         textures = [pygltflib.Texture(sampler=0, source=0)]
-        colour.baseColorTexture = pygltflib.TextureInfo(index=0, texCoord=0)
+        color.baseColorTexture = pygltflib.TextureInfo(index=0, texCoord=0)
 
     gltf = pygltflib.GLTF2(
         images=images, textures=textures, samplers=samplers,

@@ -1,4 +1,4 @@
-"""Depth, normal, coverage and colour maps of a mesh seen by a frontal camera (export's --exr).
+"""Depth, normal, coverage and color maps of a mesh seen by a frontal camera (export's --exr).
 
     K, w2c = frontal_camera(vertices, body_axes, 512)
     maps = mesh_maps(vertices, faces, colors, K, w2c, 512)     # {"Z", "N", "A", "RGB"}
@@ -52,7 +52,7 @@ def frontal_camera(vertices: np.ndarray, body_axes: np.ndarray, size: int, fov_d
 
 def mesh_maps(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, K: np.ndarray, w2c: np.ndarray,
               size: int) -> dict[str, np.ndarray]:
-    """Ray-cast depth (Z: camera z), unit world normals (N), coverage (A) and linear colour (RGB).
+    """Ray-cast depth (Z: camera z), unit world normals (N), coverage (A) and linear color (RGB).
 
     Args:
         vertices: (V, 3) world; faces: (F, 3); colors: (V, 3) uint8 sRGB; K (3, 3), w2c (4, 4).

@@ -1,14 +1,14 @@
-"""UV atlas and colour-texture baking for a decimated, textured avatar mesh.
+"""UV atlas and color-texture baking for a decimated, textured avatar mesh.
 
     atlas = unwrap(vertices, faces, size=1024)                 # xatlas charts packed in a square
-    image, covered = bake_texture(atlas.vertices(vertices), atlas.faces, atlas.uv, colour_fn, 1024)
+    image, covered = bake_texture(atlas.vertices(vertices), atlas.faces, atlas.uv, color_fn, 1024)
     png = png_bytes(image)
 
 UV convention: `UVAtlas.uv` (V', 2) is glTF's TEXCOORD_0, in [0, 1] with u to the right and v
 *down* from the image's top row (row = v * size). OBJ's vt has v up: `obj_uv` flips it.
 
 Baking: every texel whose centre falls inside a chart triangle is mapped through that
-triangle's barycentric coordinates to a point on the 3D surface, and the colour field is
+triangle's barycentric coordinates to a point on the 3D surface, and the color field is
 queried there (one query per texel, so the texture is as sharp as the field, not as the
 decimated mesh's vertices). Texels outside every chart are then filled from their covered
 neighbours, ring by ring (`dilate`), so bilinear filtering and mipmaps near a seam never blend in
@@ -148,10 +148,10 @@ def dilate(image: np.ndarray, covered: np.ndarray, rings: int) -> np.ndarray:
     """Fill uncovered texels from covered neighbours, one ring of texels per iteration.
 
     Each new texel takes the mean of its already filled 8-neighbours; after `rings` iterations
-    the texels still empty get the mean colour of the covered ones (they are never sampled).
+    the texels still empty get the mean color of the covered ones (they are never sampled).
 
     Args:
-        image: (H, W, C) float colours; covered: (H, W) bool.
+        image: (H, W, C) float colors; covered: (H, W) bool.
     Returns:
         (H, W, C) float64 image.
     """
@@ -179,17 +179,17 @@ def bake_texture(
     vertices: np.ndarray,
     faces: np.ndarray,
     uv: np.ndarray,
-    colour_fn: Callable[[np.ndarray], np.ndarray],
+    color_fn: Callable[[np.ndarray], np.ndarray],
     size: int,
     rings: int = 2 * DEFAULT_PADDING,
     chunk: int = 1 << 18,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Bake a colour field into a texture over a UV layout.
+    """Bake a color field into a texture over a UV layout.
 
     Args:
         vertices: (V, 3) positions of the UV mesh's vertices (seam vertices duplicated);
         faces: (F, 3); uv: (V, 2) in [0, 1], v down.
-        colour_fn: (P, 3) surface points -> (P, 3) sRGB colours in [0, 1].
+        color_fn: (P, 3) surface points -> (P, 3) sRGB colors in [0, 1].
         size: texture width = height; rings: dilation rings over seams.
     Returns:
         image (size, size, 3) uint8 sRGB (row 0 = v 0) and covered (size, size) bool, the texels
@@ -200,12 +200,12 @@ def bake_texture(
     rows, cols = np.nonzero(covered)
     corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)[face_of[rows, cols]]]  # (P, 3, 3)
     points = np.einsum("pk,pkd->pd", bary[rows, cols], corners)
-    colours = np.concatenate([
-        np.asarray(colour_fn(points[start : start + chunk]), dtype=np.float64)
+    colors = np.concatenate([
+        np.asarray(color_fn(points[start : start + chunk]), dtype=np.float64)
         for start in range(0, points.shape[0], chunk)
     ]) if points.shape[0] else np.zeros((0, 3))
     image = np.zeros((size, size, 3), dtype=np.float64)
-    image[rows, cols] = np.clip(colours, 0.0, 1.0)
+    image[rows, cols] = np.clip(colors, 0.0, 1.0)
     image = dilate(image, covered, rings)
     return (image * 255).round().astype(np.uint8), covered
 

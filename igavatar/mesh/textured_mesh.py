@@ -1,12 +1,12 @@
-"""A game-ready canonical mesh: decimated (pymeshlab quadric), unwrapped (xatlas), colour baked.
+"""A game-ready canonical mesh: decimated (pymeshlab quadric), unwrapped (xatlas), color baked.
 
-    mesh = textured_mesh(vertices, faces, colour_fn, target_faces=30_000, texture_size=1024)
+    mesh = textured_mesh(vertices, faces, color_fn, target_faces=30_000, texture_size=1024)
     obj_text, mtl_text = textured_obj(mesh.vertices, mesh.faces, mesh.uv, "avatar.mtl", "avatar.png")
 
 Decimation is quadric edge collapse with the boundary, face orientation and topology kept
 (`clean_mesh`): no collapse may change the genus or flip a face, so thin limbs and fingers are
-not pinched shut, and the budget goes where the curvature is. The colour is then baked from the
-colour field at full detail (one query per texel), not from the decimated vertices.
+not pinched shut, and the budget goes where the curvature is. The color is then baked from the
+color field at full detail (one query per texel), not from the decimated vertices.
 """
 
 from __future__ import annotations
@@ -42,15 +42,15 @@ class TexturedMesh:
 def textured_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
-    colour_fn: Callable[[np.ndarray], np.ndarray],
+    color_fn: Callable[[np.ndarray], np.ndarray],
     target_faces: int,
     texture_size: int,
 ) -> TexturedMesh:
-    """Decimate to at most `target_faces`, unwrap and bake `colour_fn` ((P, 3) -> (P, 3) sRGB in [0, 1])."""
+    """Decimate to at most `target_faces`, unwrap and bake `color_fn` ((P, 3) -> (P, 3) sRGB in [0, 1])."""
     decimated, decimated_faces, _ = clean_mesh(vertices, faces, keep_largest=False, target_faces=target_faces)
     atlas = unwrap(decimated, decimated_faces, texture_size)
     atlas_vertices = atlas.vertices(decimated).astype(np.float32)
-    image, covered = bake_texture(atlas_vertices, atlas.faces, atlas.uv, colour_fn, texture_size)
+    image, covered = bake_texture(atlas_vertices, atlas.faces, atlas.uv, color_fn, texture_size)
     return TexturedMesh(
         vertices=atlas_vertices, faces=atlas.faces, uv=atlas.uv, image=image, coverage=float(covered.mean()),
         decimated_vertices=int(decimated.shape[0]),

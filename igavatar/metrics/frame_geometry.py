@@ -4,7 +4,7 @@
 
 Chamfer, normal consistency and (for watertight meshes) a volumetric IoU whose parity volume is
 checked against the signed volume (a self-intersecting or holed mesh is reported "approximate"),
-plus a per-vertex distance to the scan for error colours.
+plus a per-vertex distance to the scan for error colors.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from scipy.spatial import cKDTree
 
 from igavatar.metrics.geometry import closest_point_on_triangles, evaluate_meshes, sample_surface_uniform, volumetric_iou
 
-#: Scan samples whose faces the error colours are measured against.
-ERROR_COLOUR_SAMPLES = 100_000
+#: Scan samples whose faces the error colors are measured against.
+ERROR_COLOR_SAMPLES = 100_000
 
 
 class GeometrySettings(Protocol):
@@ -63,19 +63,19 @@ def volume_check(vertices: np.ndarray, faces: np.ndarray, n_inside: int, n_point
 def vertex_distance_to_scan(
     vertices: np.ndarray, scan_vertices: np.ndarray, scan_faces: np.ndarray, seed: int, k: int = 4
 ) -> np.ndarray:
-    """Distance (V,) in metres from each vertex to the scan, for the error colours.
+    """Distance (V,) in metres from each vertex to the scan, for the error colors.
 
     Args:
         vertices: (V, 3) query points. scan_vertices (Vg, 3), scan_faces (Fg, 3): the scan.
         seed: fixes the scan samples. k: nearest samples whose faces are tested exactly.
     Returns:
         (V,) the exact distance to the nearest of the faces holding the k nearest of
-        ERROR_COLOUR_SAMPLES area-uniform scan samples: an upper bound on the point-to-face distance
+        ERROR_COLOR_SAMPLES area-uniform scan samples: an upper bound on the point-to-face distance
         that equals it unless the closest face holds none of those samples. It costs one k-d tree
         query and V * k triangle tests, where the exact search of the metrics would dominate a
         frame's time when run from every predicted vertex.
     """
-    samples, sample_face = sample_surface_uniform(scan_vertices, scan_faces, ERROR_COLOUR_SAMPLES,
+    samples, sample_face = sample_surface_uniform(scan_vertices, scan_faces, ERROR_COLOR_SAMPLES,
                                                   np.random.default_rng([seed, 3]))
     _, nearest = cKDTree(samples).query(vertices, k=k)
     candidate_faces = scan_faces[sample_face[nearest.reshape(-1)]]  # (V * k, 3)

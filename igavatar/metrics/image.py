@@ -196,7 +196,7 @@ def side_by_side(gt: Any, pred: Any, error_vmax: float = 0.25) -> np.ndarray:
 
     Args:
         gt, pred: (H, W, 3) float RGB in [0, 1].
-        error_vmax: mean absolute error shown at the top of the colour map (OpenCV JET: blue = 0,
+        error_vmax: mean absolute error shown at the top of the color map (OpenCV JET: blue = 0,
             red >= error_vmax). Fixed rather than per-image so that panels compare across frames.
     Returns:
         RGB uint8; convert with ``cv2.COLOR_RGB2BGR`` before ``cv2.imwrite``.

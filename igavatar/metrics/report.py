@@ -6,9 +6,9 @@
 Pure functions: arrays and dicts in, strings and RGB uint8 images out; the caller writes files.
 Every metric is declared once in ``METRICS`` with its protocol, units, coordinate frame and
 background (EVAL.md: a number that does not say these cannot be compared with another report).
-Plots are drawn with OpenCV (matplotlib is not a dependency). The error-coloured mesh panel ray
+Plots are drawn with OpenCV (matplotlib is not a dependency). The error-colored mesh panel ray
 casts the posed prediction and the scan from the test camera with Embree
-(``igavatar.geometry.raycast``) and colours the prediction by its distance to the scan.
+(``igavatar.geometry.raycast``) and colors the prediction by its distance to the scan.
 """
 
 from __future__ import annotations
@@ -313,11 +313,11 @@ def metric_curves_image(
     return np.concatenate(rows, axis=0)
 
 
-# ----------------------------------------------------------------------------- error-coloured meshes
+# ----------------------------------------------------------------------------- error-colored meshes
 
 
 def error_colors(error_mm: np.ndarray, vmax_mm: float) -> np.ndarray:
-    """Colour per value on the OpenCV JET map: blue at 0, red at >= vmax_mm.
+    """Color per value on the OpenCV JET map: blue at 0, red at >= vmax_mm.
 
     Args:
         error_mm: (V,) non-negative distances in mm. vmax_mm: distance shown fully red.
@@ -335,7 +335,7 @@ def error_colors(error_mm: np.ndarray, vmax_mm: float) -> np.ndarray:
 def _render_colored(
     vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, rays: CameraRays
 ) -> np.ndarray:
-    """Headlight-shaded ray cast (H, W, 3) float RGB of a mesh with per-vertex colours, white background."""
+    """Headlight-shaded ray cast (H, W, 3) float RGB of a mesh with per-vertex colors, white background."""
     caster = MeshRayCaster(vertices, faces)
     tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
     face_normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -350,15 +350,15 @@ def _render_colored(
     return render_mesh(caster, rays, shade, background=(1.0, 1.0, 1.0)).rgb.astype(np.float64) / 255.0
 
 
-def _colour_bar(height: int, vmax_mm: float, width: int = 70) -> np.ndarray:
+def _color_bar(height: int, vmax_mm: float, width: int = 70) -> np.ndarray:
     """A vertical JET legend (height, width, 3) uint8 RGB from 0 (bottom) to vmax_mm (top)."""
     bar = np.full((height, width, 3), 255, np.uint8)
     top, bottom = 16, height - 16
     if bottom - top < 2:
         return bar
     levels = np.linspace(vmax_mm, 0.0, bottom - top)
-    colours = (error_colors(levels, vmax_mm) * 255).round().astype(np.uint8)
-    bar[top:bottom, 6:22] = colours[:, None, :]
+    colors = (error_colors(levels, vmax_mm) * 255).round().astype(np.uint8)
+    bar[top:bottom, 6:22] = colors[:, None, :]
     _text(bar, f">={vmax_mm:g}", (24, top + 8), 0.33)
     _text(bar, "mm", (24, (top + bottom) // 2), 0.33)
     _text(bar, "0", (24, bottom), 0.33)
@@ -377,7 +377,7 @@ def error_mesh_panel(
     width: int,
     vmax_mm: float = 20.0,
 ) -> np.ndarray:
-    """Scan | prediction coloured by its distance to the scan | legend, seen from the test camera.
+    """Scan | prediction colored by its distance to the scan | legend, seen from the test camera.
 
     Args:
         gt_vertices (Vg, 3), gt_faces (Fg, 3): the ground-truth scan, world coordinates (metres).
@@ -387,7 +387,7 @@ def error_mesh_panel(
         vmax_mm: distance shown fully red (fixed, so that panels compare across frames).
     Returns:
         (PANEL_HEADER_PX + height, 2 * width + 70, 3) uint8 RGB: a title strip above the scan shaded
-        grey, the prediction in JET colours and the legend.
+        grey, the prediction in JET colors and the legend.
     """
     pred_error_mm = np.asarray(pred_error_mm, np.float64).reshape(-1)
     if pred_error_mm.shape[0] != np.asarray(pred_vertices).shape[0]:
@@ -399,7 +399,7 @@ def error_mesh_panel(
     gt_image = _render_colored(gt_vertices, gt_faces, grey, rays)
     pred_image = _render_colored(pred_vertices, pred_faces, error_colors(pred_error_mm, vmax_mm), rays)
     to_u8 = lambda x: np.round(np.clip(x, 0, 1) * 255).astype(np.uint8)  # noqa: E731
-    panel = np.concatenate([to_u8(gt_image), to_u8(pred_image), _colour_bar(height, vmax_mm)], axis=1)
+    panel = np.concatenate([to_u8(gt_image), to_u8(pred_image), _color_bar(height, vmax_mm)], axis=1)
     # Titles go in a strip above the renders so that they never cover the meshes.
     header = np.full((PANEL_HEADER_PX, panel.shape[1], 3), 255, np.uint8)
     _text(header, "scan", (4, 13), 0.4)

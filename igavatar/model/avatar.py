@@ -1,9 +1,9 @@
-"""The avatar: canonical SDF + colour fields, Laplace density, non-rigid offsets, Fast-SNARF deformer.
+"""The avatar: canonical SDF + color fields, Laplace density, non-rigid offsets, Fast-SNARF deformer.
 
     avatar = Avatar(AvatarConfig(), canonical_box, skinning_grid, grid_box_min, grid_box_max, pose_dim)
     frame = avatar.deformer.prepare(bone_transforms)                   # once per frame
-    x_canonical, found = avatar.correspond(x_posed, frame, pose)       # posed -> canonical (no grad)
-    out = avatar.field_at(x_canonical, pose)                           # sigma, rgb, gradient, sdf
+    x_canonical, found = avatar.correspond(x_posed, frame, pose_condition)  # posed -> canonical (no grad)
+    out = avatar.field_at(x_canonical, pose_condition)                 # sigma, rgb, gradient, sdf
 
 Posing follows the paper: the rigid correspondence from root finding plus a pose-conditioned
 offset, `x = x_rigid + f_dx(x_rigid, theta)`, at which the canonical fields are evaluated. Among
@@ -38,7 +38,7 @@ class AvatarConfig:
     sdf: SDFFieldConfig = field(default_factory=SDFFieldConfig)
     """Canonical SDF field (hash grid + MLP)."""
     color: ColorFieldConfig = field(default_factory=ColorFieldConfig)
-    """Canonical colour field."""
+    """Canonical color field."""
     density: LaplaceDensityConfig = field(default_factory=lambda: LaplaceDensityConfig(beta_init=0.075))
     """Laplace density; beta starts at 0.075 after shape initialisation (official)."""
     nonrigid_width: int = 128
@@ -94,22 +94,22 @@ class Avatar(nn.Module):
         sdf, _ = self.sdf_field(x_canonical)
         return self.density(sdf)
 
-    def offset_points(self, x_rigid: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    def offset_points(self, x_rigid: torch.Tensor, pose_condition: torch.Tensor) -> torch.Tensor:
         """(M, 3) rigid canonical points plus the pose-conditioned non-rigid offset (when enabled)."""
         if not self.nonrigid.enabled:
             return x_rigid
-        return x_rigid + self.nonrigid(x_rigid, pose)
+        return x_rigid + self.nonrigid(x_rigid, pose_condition)
 
     @torch.no_grad()
     def correspond(
-        self, x_posed: torch.Tensor, frame: PreparedFrame, pose: torch.Tensor
+        self, x_posed: torch.Tensor, frame: PreparedFrame, pose_condition: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Rigid canonical correspondences of posed points.
 
         Args:
             x_posed: (M, 3) posed world points.
             frame: the deformer's PreparedFrame of this frame.
-            pose: (pose_dim,) conditioning of the non-rigid offset (used to score candidates).
+            pose_condition: (pose_dim,) conditioning of the non-rigid offset (used to score candidates).
         Returns:
             x_canonical (M, 3) rigid correspondences (before the non-rigid offset) and found (M,)
             bool: whether any valid root exists. Points not found get their first iterate.
@@ -122,7 +122,7 @@ class Avatar(nn.Module):
             # Score only the candidates that matter: valid roots of points with several of them.
             cand = candidates[ambiguous]
             cand_valid = valid[ambiguous]
-            sdf, _ = self.sdf_field(self.offset_points(cand[cand_valid], pose))
+            sdf, _ = self.sdf_field(self.offset_points(cand[cand_valid], pose_condition))
             score = torch.full(cand_valid.shape, float("-inf"), dtype=sdf.dtype, device=sdf.device)
             score[cand_valid] = -sdf  # highest density = lowest signed distance
             chosen[ambiguous] = score.argmax(dim=1)
@@ -132,7 +132,7 @@ class Avatar(nn.Module):
     def field_at(
         self,
         x_rigid: torch.Tensor,
-        pose: torch.Tensor,
+        pose_condition: torch.Tensor,
         *,
         sigma_noise_std: float = 0.0,
         generator: torch.Generator | None = None,
@@ -141,14 +141,14 @@ class Avatar(nn.Module):
 
         Args:
             x_rigid: (M, 3) canonical points from `correspond`.
-            pose: (pose_dim,) pose conditioning.
+            pose_condition: (pose_dim,) conditioning of the non-rigid offset.
             sigma_noise_std: std of Gaussian noise added to the density (early training), clamped >= 0.
             generator: RNG of that noise.
         Returns:
             FieldOutput with sigma (M,), rgb (M, 3), sdf (M,) and the analytic SDF gradient (M, 3)
             (closed form, so it costs no double backward), differentiable wrt the parameters.
         """
-        sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose))
+        sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose_condition))
         normal = F.normalize(gradient, dim=-1, eps=1e-12)
         rgb = self.color_field(feature, normal)
         sigma = self.density(sdf)

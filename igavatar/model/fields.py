@@ -1,4 +1,4 @@
-"""Canonical fields: hash-grid SDF (with analytic gradient), colour field and Laplace density.
+"""Canonical fields: hash-grid SDF (with analytic gradient), color field and Laplace density.
 
     sdf_field = SDFField(SDFFieldConfig(), box_min=torch.full((3,), -1.0), box_max=torch.ones(3))
     sdf, feature, grad_sdf = sdf_field.forward_with_gradient(x_canonical)  # (P,), (P, 16), (P, 3)
@@ -256,7 +256,7 @@ class SDFField(nn.Module):
 
 @dataclass(frozen=True)
 class ColorFieldConfig:
-    """Architecture of the canonical colour field (no view direction, as in the official code)."""
+    """Architecture of the canonical color field (no view direction, as in the official code)."""
 
     feature_dim: int = 16
     """Channels of the SDF feature it is conditioned on (SDFFieldConfig.feature_dim)."""
@@ -275,7 +275,7 @@ class ColorFieldConfig:
 
 
 class ColorField(nn.Module):
-    """Canonical colour: ``(feature (P, feature_dim), normal_canonical (P, 3)) -> rgb (P, 3)`` in [0, 1]."""
+    """Canonical color: ``(feature (P, feature_dim), normal_canonical (P, 3)) -> rgb (P, 3)`` in [0, 1]."""
 
     def __init__(self, config: ColorFieldConfig) -> None:
         super().__init__()

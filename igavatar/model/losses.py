@@ -1,4 +1,4 @@
-"""Training losses of InstantGeoAvatar (paper Eq. 7 and 9) and the Table 5 ablation regularisers.
+"""Training losses of InstantGeoAvatar (paper Eq. 7 and 9) and the Table 5 ablation regularizers.
 
     terms = {"rgb": rgb_loss(out.rgb, rgb_gt), "smooth": smooth_loss_along_ray(out.gradient, out.valid)}
     loss = total_loss(terms, LossWeights())   # out: igavatar.render.volume.RenderOutput
@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 SdfFn = Callable[[Tensor], Tensor]
-"""x (P, 3) -> signed distance (P,), positive outside; used by the finite-difference regularisers."""
+"""x (P, 3) -> signed distance (P,), positive outside; used by the finite-difference regularizers."""
 
 _NORMAL_EPS = 1e-12
 
@@ -92,7 +92,7 @@ def rgb_loss(
     kind: Literal["mse", "l1", "huber"] = "mse",
     huber_delta: float = 0.1,
 ) -> Tensor:
-    """Photometric loss on composited colour.
+    """Photometric loss on composited color.
 
     Args:
         rgb_pred, rgb_target: (R, 3) (or any equal shapes) in [0, 1]; the target must be

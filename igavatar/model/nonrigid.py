@@ -1,7 +1,7 @@
 """Pose-conditioned non-rigid offset field f_dx(x_c, theta) -> dx added to the rigid correspondence.
 
     offsets = NonRigidOffset(NonRigidConfig(pose_dim=69)); offsets.set_enabled(True); offsets.set_window(0.5)
-    x_canonical = x_rigid + offsets(x_rigid, pose)                     # (P, 3) + (P, 3)
+    x_canonical = x_rigid + offsets(x_rigid, pose_condition)           # (P, 3) + (P, 3)
 
 Hann-windowed positional encoding of x_c (Nerfies' coarse-to-fine window: band k is weighted by
 `(1 - cos(pi * clamp(alpha - k, 0, 1))) / 2`, alpha opened from 0 to the number of frequencies over
@@ -68,7 +68,7 @@ def hann_window(alpha: float, num_frequencies: int, device=None, dtype=None) -> 
 
 
 class NonRigidOffset(nn.Module):
-    """f_dx: (x_canonical (P, 3), pose (pose_dim,) or (P, pose_dim)) -> offsets (P, 3).
+    """f_dx: (x_canonical (P, 3), pose_condition (pose_dim,) or (P, pose_dim)) -> offsets (P, 3).
 
     Schedule state (`enabled`, window `alpha`) is part of the state dict (extra state), so a
     resumed checkpoint continues where it stopped.
@@ -126,13 +126,13 @@ class NonRigidOffset(nn.Module):
         return torch.cat([x_canonical, sines, cosines], dim=1)
 
     def forward(
-        self, x_canonical: torch.Tensor, pose: torch.Tensor, alpha: float | None = None
+        self, x_canonical: torch.Tensor, pose_condition: torch.Tensor, alpha: float | None = None
     ) -> torch.Tensor:
         """Offsets at canonical points.
 
         Args:
             x_canonical: (P, 3) rigid canonical correspondences.
-            pose: (pose_dim,) shared by all points, or (P, pose_dim).
+            pose_condition: (pose_dim,) shared by all points, or (P, pose_dim).
             alpha: window override; None uses `self.alpha` (see `set_window`).
         Returns:
             (P, 3) offsets, each component in (-max_offset, max_offset); zeros when disabled.
@@ -141,17 +141,17 @@ class NonRigidOffset(nn.Module):
             raise InputError(f"x_canonical: shape {tuple(x_canonical.shape)}, expected (P, 3)")
         num_points = x_canonical.shape[0]
         pose_dim = self.config.pose_dim
-        if pose.shape not in ((pose_dim,), (num_points, pose_dim)):
+        if pose_condition.shape not in ((pose_dim,), (num_points, pose_dim)):
             raise InputError(
-                f"pose: shape {tuple(pose.shape)}, expected ({pose_dim},) or ({num_points}, {pose_dim})"
+                f"pose_condition: shape {tuple(pose_condition.shape)}, expected ({pose_dim},) or ({num_points}, {pose_dim})"
             )
         if not self.enabled:
             return torch.zeros_like(x_canonical)
-        if pose.ndim == 1 and kernels_enabled():
-            return self._forward_shared_pose(x_canonical, pose, alpha)
-        return self._forward_reference(x_canonical, pose, alpha)
+        if pose_condition.ndim == 1 and kernels_enabled():
+            return self._forward_shared_pose(x_canonical, pose_condition, alpha)
+        return self._forward_reference(x_canonical, pose_condition, alpha)
 
-    def _forward_shared_pose(self, x_canonical: torch.Tensor, pose: torch.Tensor, alpha: float | None) -> torch.Tensor:
+    def _forward_shared_pose(self, x_canonical: torch.Tensor, pose_condition: torch.Tensor, alpha: float | None) -> torch.Tensor:
         """Fast path for one pose shared by all points: the first layer's pose columns are applied
         once (W [enc; pose] + b = W_enc enc + (W_pose pose + b)), not once per point. With Anny's
         309-d pose that is ~90% of the first layer and ~40% of the network's work, forward and
@@ -160,7 +160,7 @@ class NonRigidOffset(nn.Module):
         encoded = self.encode(x_canonical, alpha)
         n_encoded = encoded.shape[1]
         weight = first.weight.to(x_canonical.dtype)
-        bias = first.bias.to(x_canonical.dtype) + weight[:, n_encoded:] @ pose.to(x_canonical.dtype)
+        bias = first.bias.to(x_canonical.dtype) + weight[:, n_encoded:] @ pose_condition.to(x_canonical.dtype)
         # Rows padded to a cached matrix shape (see linear.pad_rows), sliced off at the output.
         h = linear(pad_rows(encoded), weight[:, :n_encoded], bias, relu=True)
         for layer in self.hidden[2::2]:  # the Linear modules after the first (ReLU between them)
@@ -168,13 +168,13 @@ class NonRigidOffset(nn.Module):
         out = linear(h, self.output.weight, self.output.bias)[: x_canonical.shape[0]]
         return self.config.max_offset * torch.tanh(out)
 
-    def _forward_reference(self, x_canonical: torch.Tensor, pose: torch.Tensor, alpha: float | None) -> torch.Tensor:
+    def _forward_reference(self, x_canonical: torch.Tensor, pose_condition: torch.Tensor, alpha: float | None) -> torch.Tensor:
         """The network as written: [encoding, pose] concatenated per point through the MLP."""
         num_points, pose_dim = x_canonical.shape[0], self.config.pose_dim
         features = torch.cat(
             [
                 self.encode(x_canonical, alpha),
-                pose.to(x_canonical.dtype).expand(num_points, pose_dim),
+                pose_condition.to(x_canonical.dtype).expand(num_points, pose_dim),
             ],
             dim=1,
         )

@@ -1,6 +1,6 @@
 """A trained avatar in one frame: every posed-space query goes through here.
 
-    posed = PosedAvatar.of(avatar, bone_transforms, pose)   # (J, 4, 4) canonical -> world, (P,)
+    posed = PosedAvatar.of(avatar, bone_transforms, pose_condition)   # (J, 4, 4) canonical -> world, (pose_dim,)
     posed.field_fn(x_posed)        # renderer FieldOutput; density 0 where no canonical root exists
     posed.sdf(x_posed)             # (M,) canonical SDF at the correspondences, NO_ROOT_SDF without one
     posed.colors(x_posed)          # (M, 3) sRGB in [0, 1]
@@ -37,20 +37,20 @@ class PosedAvatar:
     """An Avatar with one frame's bone transforms prepared and its pose conditioning.
 
     Attributes:
-        avatar: the Avatar (canonical SDF, colour, non-rigid offset, deformer).
+        avatar: the Avatar (canonical SDF, color, non-rigid offset, deformer).
         frame: the deformer's PreparedFrame of the frame's (J, 4, 4) bone transforms.
-        pose: (P,) pose conditioning of the non-rigid offset, on the avatar's device.
+        pose_condition: (pose_dim,) conditioning of the non-rigid offset, on the avatar's device.
     """
 
     avatar: Avatar
     frame: PreparedFrame
-    pose: torch.Tensor
+    pose_condition: torch.Tensor
 
     @classmethod
-    def of(cls, avatar: Avatar, bone_transforms: torch.Tensor, pose: torch.Tensor) -> PosedAvatar:
-        """Pose `avatar` with (J, 4, 4) canonical -> world transforms and (P,) conditioning."""
+    def of(cls, avatar: Avatar, bone_transforms: torch.Tensor, pose_condition: torch.Tensor) -> PosedAvatar:
+        """Pose `avatar` with (J, 4, 4) canonical -> world transforms and (pose_dim,) conditioning."""
         device = avatar.canonical_box.device
-        return cls(avatar, avatar.deformer.prepare(bone_transforms.to(device)), pose.to(device))
+        return cls(avatar, avatar.deformer.prepare(bone_transforms.to(device)), pose_condition.to(device))
 
     @property
     def device(self) -> torch.device:
@@ -58,13 +58,13 @@ class PosedAvatar:
 
     def correspond(self, x_posed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(M, 3) world points -> rigid canonical correspondences (M, 3) and found (M,) bool."""
-        return self.avatar.correspond(x_posed, self.frame, self.pose)
+        return self.avatar.correspond(x_posed, self.frame, self.pose_condition)
 
     def fields_at(
         self, x_rigid: torch.Tensor, *, sigma_noise_std: float = 0.0, generator: torch.Generator | None = None
     ) -> FieldOutput:
         """Differentiable canonical fields at rigid correspondences (see Avatar.field_at)."""
-        return self.avatar.field_at(x_rigid, self.pose, sigma_noise_std=sigma_noise_std, generator=generator)
+        return self.avatar.field_at(x_rigid, self.pose_condition, sigma_noise_std=sigma_noise_std, generator=generator)
 
     def canonical_samples(self, samples: RaySamples) -> tuple[RaySamples, torch.Tensor]:
         """Posed ray samples -> the same samples at their rigid canonical correspondences.
@@ -91,14 +91,14 @@ class PosedAvatar:
     def sdf(self, x_posed: torch.Tensor) -> torch.Tensor:
         """(M,) canonical SDF at the correspondences of (M, 3) world points; NO_ROOT_SDF without one."""
         x_rigid, found = self.correspond(x_posed)
-        sdf = self.avatar.sdf_field(self.avatar.offset_points(x_rigid, self.pose))[0].reshape(-1)
+        sdf = self.avatar.sdf_field(self.avatar.offset_points(x_rigid, self.pose_condition))[0].reshape(-1)
         return torch.where(found, sdf, torch.full_like(sdf, NO_ROOT_SDF))
 
     @torch.no_grad()
     def canonical_points(self, x_posed: torch.Tensor) -> torch.Tensor:
         """(M, 3) canonical points (non-rigid offset applied) where (M, 3) world points read the fields."""
         x_rigid, _ = self.correspond(x_posed)
-        return self.avatar.offset_points(x_rigid, self.pose)
+        return self.avatar.offset_points(x_rigid, self.pose_condition)
 
     @torch.no_grad()
     def skin(self, x_canonical: torch.Tensor) -> torch.Tensor:
@@ -120,7 +120,7 @@ class PosedAvatar:
             x_rigid = v
             if nonrigid.enabled:
                 for _ in range(iterations):
-                    x_rigid = v - nonrigid(x_rigid, self.pose)
+                    x_rigid = v - nonrigid(x_rigid, self.pose_condition)
             posed.append(self.avatar.deformer.forward_skinning(x_rigid, self.frame).cpu())
         if not posed:
             return np.zeros((0, 3), np.float32)

@@ -54,7 +54,7 @@ def render_avatar_view(
     avatar: Avatar,
     canonical_grid: OccupancyGrid,
     bone_transforms: torch.Tensor,
-    pose: torch.Tensor,
+    pose_condition: torch.Tensor,
     K: torch.Tensor,
     w2c: torch.Tensor,
     height: int,
@@ -62,6 +62,6 @@ def render_avatar_view(
     posed_box: torch.Tensor,
     **settings,
 ) -> ImageRender:
-    """render_posed_view of `avatar` posed by (J, 4, 4) bone transforms and (P,) conditioning."""
-    return render_posed_view(PosedAvatar.of(avatar, bone_transforms, pose), canonical_grid, K, w2c, height, width,
+    """render_posed_view of `avatar` posed by (J, 4, 4) bone transforms and (pose_dim,) conditioning."""
+    return render_posed_view(PosedAvatar.of(avatar, bone_transforms, pose_condition), canonical_grid, K, w2c, height, width,
                              posed_box, **settings)

@@ -5,12 +5,12 @@
 
 ``field_fn`` maps the **valid** sample positions only, flattened to (M, 3), to a
 :class:`FieldOutput` (or a mapping with the same keys). It is free to warp posed points to
-canonical space, run the SDF and colour networks and turn the SDF into density; the renderer only
+canonical space, run the SDF and color networks and turn the SDF into density; the renderer only
 composites. Compositing (paper Sec. 3.2): ``alpha_i = 1 - exp(-sigma_i * delta_i)``, transmittance
 ``T_i = prod_{j<i} (1 - alpha_j) = exp(-sum_{j<i} sigma_j delta_j)`` (computed as an exclusive
 cumulative sum in log space, which stays accurate where the product underflows), weights
-``w_i = alpha_i T_i``, colour ``sum_i w_i c_i + (1 - sum_i w_i) * background``. Invalid samples have
-sigma * delta = 0, so they neither add colour nor attenuate later samples.
+``w_i = alpha_i T_i``, color ``sum_i w_i c_i + (1 - sum_i w_i) * background``. Invalid samples have
+sigma * delta = 0, so they neither add color nor attenuate later samples.
 
 ``delta_i`` is the sample's interval length along the posed-space ray (as the released code
 does; the paper's notation writes canonical points). ``sigma`` must be >= 0: training-time density
@@ -38,7 +38,7 @@ class FieldOutput:
 
     Attributes:
         sigma: (M,) non-negative density.
-        rgb: (M, 3) colour in [0, 1].
+        rgb: (M, 3) color in [0, 1].
         gradient: (M, 3) or None; SDF gradient (analytic), used by the eikonal and smoothness
             losses; also gives the normal map when ``normal`` is None.
         normal: (M, 3) or None; unit normal for the normal map when it differs from the
@@ -83,7 +83,7 @@ class RenderOutput:
     """Composited pixels and the per-sample quantities the losses need.
 
     Attributes:
-        rgb: (R, 3) colour composited on the background.
+        rgb: (R, 3) color composited on the background.
         opacity: (R,) accumulated weight ``sum_i w_i`` (= 1 - final transmittance).
         depth: (R,) expected termination distance ``sum_i w_i t_i`` (0 contribution from the
             background; divide by opacity for the depth of the surface alone).
@@ -138,12 +138,12 @@ def render_rays(
         samples: RaySamples (R, S) from :func:`sample_along_rays`.
         field_fn: x (M, 3) -> FieldOutput, called on the valid samples only (not called when
             there are none, in which case every ray shows the background).
-        background: (R, 3) or (3,) colour behind the subject (random noise in training, white
+        background: (R, 3) or (3,) color behind the subject (random noise in training, white
             at eval).
         early_stop_transmittance: None renders all samples (training). A threshold (1e-4 at
             eval) marches the samples ``march_chunk`` slots at a time and stops evaluating a ray
             once its transmittance falls below it; weights of samples with T_i below it are
-            zeroed, which changes the colour by at most the threshold.
+            zeroed, which changes the color by at most the threshold.
         march_chunk: slots per step of that march.
 
     Returns:
@@ -243,7 +243,7 @@ class ImageRender:
     """Maps of one rendered image.
 
     Attributes:
-        rgb: (H, W, 3) colour on the background.
+        rgb: (H, W, 3) color on the background.
         opacity: (H, W) accumulated weight.
         depth: (H, W) expected distance along the ray divided by opacity (surface depth; 0 where
             opacity < 1e-6). Distance along the ray, not camera z.
@@ -285,7 +285,7 @@ def render_image(
         box_min, box_max: (3,) bounds used for near/far.
         occupied_fn: e.g. ``grid.is_occupied`` after ``grid.rebuild`` for this frame.
         num_samples: bins per ray.
-        background: (3,) colour, default white.
+        background: (3,) color, default white.
         chunk_rays: rays per :func:`render_rays` call.
         early_stop_transmittance: see :func:`render_rays`.
 

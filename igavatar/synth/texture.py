@@ -3,7 +3,7 @@
     texture = make_texture("stripes", seed=0, landmarks=find_landmarks(x_rest, weights, names, joints_rest))
     albedo = texture.albedo(x_canonical, region_ids(coverage))      # (P, 3) RGB in [0, 1]
 
-Because colour is a function of the canonical position only, a point keeps its colour in every
+Because color is a function of the canonical position only, a point keeps its color in every
 frame and view. Details are deliberately high-frequency (2 cm stripes, 3 cm checks, printed letters,
 eyes and mouth) so that a reconstruction has to resolve them and the subject's facing is visible.
 Shapes: P points, V vertices, C coverage channels.
@@ -28,15 +28,15 @@ TEXTURES: tuple[str, ...] = get_args(TextureStyle)
 SKIN_TONES = np.array(
     [[0.96, 0.80, 0.69], [0.91, 0.72, 0.58], [0.80, 0.60, 0.45], [0.62, 0.44, 0.32], [0.45, 0.30, 0.22]]
 )
-GARMENT_COLOURS = np.array(
+GARMENT_COLORS = np.array(
     [[0.80, 0.12, 0.12], [0.12, 0.32, 0.75], [0.10, 0.55, 0.25], [0.90, 0.62, 0.10], [0.45, 0.18, 0.60],
      [0.05, 0.55, 0.62], [0.85, 0.40, 0.55], [0.92, 0.90, 0.85]]
 )
-TROUSER_COLOURS = np.array(
+TROUSER_COLORS = np.array(
     [[0.15, 0.20, 0.35], [0.25, 0.25, 0.27], [0.40, 0.30, 0.20], [0.55, 0.50, 0.40], [0.10, 0.10, 0.12]]
 )
-HAIR_COLOURS = np.array([[0.10, 0.07, 0.05], [0.30, 0.18, 0.08], [0.55, 0.38, 0.18], [0.80, 0.65, 0.40]])
-SHOE_COLOUR = np.array([0.08, 0.08, 0.09])
+HAIR_COLORS = np.array([[0.10, 0.07, 0.05], [0.30, 0.18, 0.08], [0.55, 0.38, 0.18], [0.80, 0.65, 0.40]])
+SHOE_COLOR = np.array([0.08, 0.08, 0.09])
 
 
 def region_ids(coverage: np.ndarray) -> np.ndarray:
@@ -133,11 +133,11 @@ def _smooth_square(phase: np.ndarray, duty: float = 0.5, softness: float = 0.06)
 
 @dataclass(frozen=True)
 class SolidTexture:
-    """Colours and patterns per region, as a function of canonical position.
+    """Colors and patterns per region, as a function of canonical position.
 
     Attributes:
         style: one of TEXTURES.
-        colours: region name -> (3,) base RGB in [0, 1].
+        colors: region name -> (3,) base RGB in [0, 1].
         accents: region name -> (3,) second RGB of the pattern in that region.
         stripe_period: shirt stripe period in metres.
         check_size: trouser / plaid check size in metres.
@@ -149,7 +149,7 @@ class SolidTexture:
     """
 
     style: str
-    colours: dict[str, np.ndarray]
+    colors: dict[str, np.ndarray]
     accents: dict[str, np.ndarray]
     stripe_period: float
     check_size: float
@@ -160,7 +160,7 @@ class SolidTexture:
     pinstripes: int = 18
 
     def albedo(self, x_canonical: np.ndarray, regions: np.ndarray) -> np.ndarray:
-        """Surface colour at canonical points.
+        """Surface color at canonical points.
 
         Args:
             x_canonical: (P, 3) canonical positions in metres.
@@ -175,14 +175,14 @@ class SolidTexture:
             if not sel.any():
                 continue
             points = x_canonical[sel]
-            base = np.broadcast_to(self.colours[name], points.shape)
-            pattern = self._pattern(name, points)  # (p,) weight of the accent colour
-            colour = base + pattern[:, None] * (self.accents[name] - base)
+            base = np.broadcast_to(self.colors[name], points.shape)
+            pattern = self._pattern(name, points)  # (p,) weight of the accent color
+            color = base + pattern[:, None] * (self.accents[name] - base)
             if name == "skin":
-                colour = self._face(points, colour)
+                color = self._face(points, color)
             elif name == "top" and self.letters.size:
-                colour = self._print(points, colour)
-            out[sel] = colour
+                color = self._print(points, color)
+            out[sel] = color
         return np.clip(out, 0.0, 1.0)
 
     def _pattern(self, region: str, x: np.ndarray) -> np.ndarray:
@@ -228,10 +228,10 @@ class SolidTexture:
             best_distance = np.minimum(distance, best_distance)
         return azimuth - np.floor(azimuth)
 
-    def _face(self, x: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    def _face(self, x: np.ndarray, color: np.ndarray) -> np.ndarray:
         lm = self.landmarks
         scale = lm.body_scale
-        colour = colour.copy()
+        color = color.copy()
         for eye in lm.eyes:
             d = (x - eye) / scale
             # The eyeball shells are dropped, so the sclera is painted into the socket behind them too.
@@ -240,16 +240,16 @@ class SolidTexture:
             r_sclera = np.sqrt((d[:, 0] / 0.015) ** 2 + (d[:, 2] / 0.008) ** 2)
             r_iris = np.sqrt(d[:, 0] ** 2 + d[:, 2] ** 2) / 0.0065
             brow = (np.abs(d[:, 0]) < 0.018) & (np.abs(d[:, 2] - 0.019) < 0.0035) & (d[:, 1] < 0.02)
-            colour[front & (r_sclera < 1)] = [0.95, 0.95, 0.93]
-            colour[front & (r_iris < 1)] = [0.12, 0.20, 0.30]
-            colour[front & (r_iris < 0.45)] = [0.02, 0.02, 0.02]
-            colour[brow] = self.colours["hair"] * 0.8
+            color[front & (r_sclera < 1)] = [0.95, 0.95, 0.93]
+            color[front & (r_iris < 1)] = [0.12, 0.20, 0.30]
+            color[front & (r_iris < 0.45)] = [0.02, 0.02, 0.02]
+            color[brow] = self.colors["hair"] * 0.8
         d = (x - lm.mouth) / scale
         lips = (np.sqrt((d[:, 0] / 0.024) ** 2 + (d[:, 2] / 0.008) ** 2) < 1) & (d[:, 1] < 0.02)
-        colour[lips] = [0.62, 0.22, 0.22]
-        return colour
+        color[lips] = [0.62, 0.22, 0.22]
+        return color
 
-    def _print(self, x: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    def _print(self, x: np.ndarray, color: np.ndarray) -> np.ndarray:
         lm = self.landmarks
         h, w = self.letters.shape
         half_width = self.print_half_width * lm.body_scale
@@ -259,38 +259,38 @@ class SolidTexture:
         v = (lm.chest[2] - x[:, 2]) / half_height  # -1..1 top to bottom
         inside = (np.abs(u) <= 1) & (np.abs(v) <= 1) & (x[:, 1] < lm.chest[1] + 0.08 * lm.body_scale)
         if not inside.any():
-            return colour
+            return color
         rows = (v[inside] + 1) * 0.5 * (h - 1)
         cols = (u[inside] + 1) * 0.5 * (w - 1)
         alpha = map_coordinates(self.letters, [rows, cols], order=1, mode="constant")
-        colour = colour.copy()
-        colour[inside] += alpha[:, None] * (self.accents["print"] - colour[inside])
-        return colour
+        color = color.copy()
+        color[inside] += alpha[:, None] * (self.accents["print"] - color[inside])
+        return color
 
 
 def make_texture(style: str, seed: int, landmarks: TextureLandmarks) -> SolidTexture:
-    """Draw colours and the printed text from `seed` and build the texture of a style in TEXTURES."""
+    """Draw colors and the printed text from `seed` and build the texture of a style in TEXTURES."""
     if style not in TEXTURES:
         raise InputError(f"texture '{style}' is not known; choose one of {', '.join(TEXTURES)}")
     rng = np.random.default_rng(seed)
     skin = SKIN_TONES[rng.integers(len(SKIN_TONES))]
-    top_index, accent_index = rng.choice(len(GARMENT_COLOURS), size=2, replace=False)
-    top = GARMENT_COLOURS[top_index]
-    top_accent = GARMENT_COLOURS[accent_index]
-    bottom = TROUSER_COLOURS[rng.integers(len(TROUSER_COLOURS))]
+    top_index, accent_index = rng.choice(len(GARMENT_COLORS), size=2, replace=False)
+    top = GARMENT_COLORS[top_index]
+    top_accent = GARMENT_COLORS[accent_index]
+    bottom = TROUSER_COLORS[rng.integers(len(TROUSER_COLORS))]
     bottom_accent = np.clip(bottom * 0.5 + 0.45, 0, 1) if style == "stripes" else np.clip(1.0 - bottom * 0.7, 0, 1)
-    hair = HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))]
-    # Print in white or black, whichever contrasts more with both shirt colours.
-    print_colour = np.ones(3) if (top.mean() + top_accent.mean()) < 1.1 else np.zeros(3)
+    hair = HAIR_COLORS[rng.integers(len(HAIR_COLORS))]
+    # Print in white or black, whichever contrasts more with both shirt colors.
+    print_color = np.ones(3) if (top.mean() + top_accent.mean()) < 1.1 else np.zeros(3)
     letters_pool = "ABCDEFGHJKLMNPRSTUVWXYZ"
     text = "".join(rng.choice(list(letters_pool), size=3)) + str(int(rng.integers(10)))
-    colours = {"skin": skin, "top": top, "bottom": bottom, "hair": hair, "shoes": SHOE_COLOUR}
+    colors = {"skin": skin, "top": top, "bottom": bottom, "hair": hair, "shoes": SHOE_COLOR}
     accents = {
         "skin": skin, "top": top_accent, "bottom": bottom_accent, "hair": hair * 0.6,
-        "shoes": np.array([0.3, 0.3, 0.3]), "print": print_colour,
+        "shoes": np.array([0.3, 0.3, 0.3]), "print": print_color,
     }
     letters = _render_letters(text) if style != "plain" else np.zeros((0, 0), np.float32)
     return SolidTexture(
-        style=style, colours=colours, accents=accents, stripe_period=0.02 + 0.005 * rng.random(),
+        style=style, colors=colors, accents=accents, stripe_period=0.02 + 0.005 * rng.random(),
         check_size=0.03, letters=letters, text=text, landmarks=landmarks,
     )

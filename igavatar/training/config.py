@@ -57,7 +57,7 @@ class TrainConfig:
     beta_lr_factor: float = 0.1
     """beta's learning rate is lr times this (official: lr / 10)."""
     network_lr_factor: float = 1.0
-    """Learning rate of the MLPs (SDF, colour, non-rigid) relative to lr; the hash table uses lr."""
+    """Learning rate of the MLPs (SDF, color, non-rigid) relative to lr; the hash table uses lr."""
     lr_warmup_steps: int = 0
     """Linear learning-rate warm-up from lr/100 over this many steps (protects the shape prior)."""
     lr_decay_power: float = 1.75
@@ -67,7 +67,7 @@ class TrainConfig:
     loss_weights: LossWeights = field(default_factory=LossWeights)
     """Weights of the loss terms (paper: rgb 10, alpha 0.1, eikonal 0.1, smooth 1.0)."""
     regularizer: Regularizer = "smooth"
-    """Surface regulariser: the paper's along-ray `smooth` or one of the Table-5 ablations."""
+    """Surface regularizer: the paper's along-ray `smooth` or one of the Table-5 ablations."""
     smooth_pairs: SmoothPairs = "valid"
     """`smooth`: pair consecutive valid samples (Eq. 9 read literally, also across skipped empty
     space), only samples of touching intervals ("adjacent"), or the same sample slot on

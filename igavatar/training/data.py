@@ -21,7 +21,7 @@ class TrainingData:
         masks: (N, H, W) bool.
         K: (N, 3, 3); w2c: (N, 4, 4).
         bone_transforms: (N, J, 4, 4) canonical -> posed world.
-        pose_condition: (N, P) non-rigid conditioning.
+        pose_condition: (N, pose_dim) non-rigid conditioning.
         posed_boxes: (N, 2, 3) padded world boxes of the posed subject.
         train_indices: (T,) long, frames used for training.
     """

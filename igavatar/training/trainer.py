@@ -7,7 +7,7 @@
 Each step takes one training frame, draws ray patches mostly on the subject, skips empty space
 with the frame's posed occupancy grid, maps the remaining samples to canonical space (Fast-SNARF
 root finding + non-rigid offset), renders them on random-noise background and minimises
-10 L_rgb + 0.1 L_alpha + 0.1 L_eik + 1.0 L_smooth (or an ablation's regulariser). All state that
+10 L_rgb + 0.1 L_alpha + 0.1 L_eik + 1.0 L_smooth (or an ablation's regularizer). All state that
 decides the next step (weights, Adam moments, RNG, occupancy, step) is in `state_dict()`, so a
 resumed run continues exactly.
 """
@@ -157,8 +157,8 @@ class Trainer:
         sdf, _ = self.avatar.sdf_field(x[keep])
         return free_space_loss(sdf, bound[keep], slack=self.config.hull_cell_size)
 
-    def _regulariser_terms(
-        self, out, samples: RaySamples, x_rigid: torch.Tensor, pose: torch.Tensor
+    def _regularizer_terms(
+        self, out, samples: RaySamples, x_rigid: torch.Tensor, pose_condition: torch.Tensor
     ) -> dict[str, torch.Tensor]:
         config = self.config
         valid = out.valid
@@ -179,7 +179,7 @@ class Trainer:
                 normalization="released" if config.smooth_form == "released" else "samples",
             )
         if reg in ("fd-eikonal", "curvature", "fd-eikonal+curvature") and x_rigid.shape[0] > 0:
-            x = self.avatar.offset_points(x_rigid, pose)
+            x = self.avatar.offset_points(x_rigid, pose_condition)
 
             def sdf_fn(points: torch.Tensor) -> torch.Tensor:
                 return self.avatar.sdf_field(points)[0]
@@ -236,7 +236,7 @@ class Trainer:
 
         out = render_rays(canonical_samples, field_fn, background)
         terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
-        terms.update(self._regulariser_terms(out, canonical_samples, x_rigid, posed.pose))
+        terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
             terms["free_space"] = self._free_space_term()
         loss = total_loss(terms, config.loss_weights)

@@ -13,7 +13,7 @@ charged exclusively (a call nested in another counts for its own component only)
 
     root finding     Avatar.correspond: start selection, Broyden iterations, duplicates
     hash grid        every forward of the encoding (with its closed-form Jacobian in training)
-    MLPs             SDF, colour and non-rigid MLPs (also those scoring candidates)
+    MLPs             SDF, color and non-rigid MLPs (also those scoring candidates)
     renderer         posed occupancy, sampling, compositing
     losses           the loss terms
     backward         one backward pass through everything above
@@ -113,7 +113,7 @@ def instrument(profiler: Profiler, trainer: Trainer) -> None:
     profiler.wrap(avatar.nonrigid, "forward", "MLPs")
     profiler.wrap(trainer.optimizer, "step", "optimiser")
     profiler.wrap(trainer, "_update_occupancy", "occupancy")
-    profiler.wrap(trainer, "_regulariser_terms", "losses")
+    profiler.wrap(trainer, "_regularizer_terms", "losses")
 
 
 def instrument_functions(profiler: Profiler) -> None:

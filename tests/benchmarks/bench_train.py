@@ -1,4 +1,4 @@
-"""Training benchmark: the `cpu` preset on the default synthetic subject, and regulariser costs.
+"""Training benchmark: the `cpu` preset on the default synthetic subject, and regularizer costs.
 
     python tests/benchmarks/bench_train.py                  # full run (about 15-20 min on 2 cores)
     python tests/benchmarks/bench_train.py --quick          # fewer steps, for a smoke run
@@ -59,8 +59,8 @@ def full_run(dataset: Path, out: Path, preset_name: str, steps: int | None, devi
     }
 
 
-def regulariser_costs(dataset: Path, preset_name: str, warmup: int, measured: int, device: str) -> list[dict]:
-    """Mean step time of each regulariser, interleaved step by step over the variants."""
+def regularizer_costs(dataset: Path, preset_name: str, warmup: int, measured: int, device: str) -> list[dict]:
+    """Mean step time of each regularizer, interleaved step by step over the variants."""
     artifact = read_dataset(dataset)
     data = training_data(artifact)
     trainers = {}
@@ -91,7 +91,7 @@ def main() -> None:
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--steps", type=int, default=None, help="training steps of the full run")
     parser.add_argument("--quick", action="store_true", help="200 training steps, 3+10 cost steps")
-    parser.add_argument("--skip-full", action="store_true", help="only the regulariser costs")
+    parser.add_argument("--skip-full", action="store_true", help="only the regularizer costs")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = parser.parse_args()
@@ -108,10 +108,10 @@ def main() -> None:
         psnrs = ", ".join(f"{k} {v:.2f}" for k, v in full["validation_psnr"].items())
         print(f"{full['steps']:>6} {full['wall_s']:>8.1f} {full['train_s']:>8.1f} {full['shape_init_s']:>7.1f} {full['it_s']:>6.2f} "
               f"{full['rays_s']:>8.0f} {full['samples_s']:>10.0f} {full['peak_ram_gb']:>11.2f}  {psnrs}")
-    costs = regulariser_costs(dataset, args.preset, warmup, measured, args.device)
-    results["regularisers"] = costs
+    costs = regularizer_costs(dataset, args.preset, warmup, measured, args.device)
+    results["regularizers"] = costs
     results["peak_ram_gb"] = peak_ram_bytes() / 2**30
-    print(f"\n== per-step cost of each regulariser ({measured} steps each after {warmup} warm-up, interleaved) ==")
+    print(f"\n== per-step cost of each regularizer ({measured} steps each after {warmup} warm-up, interleaved) ==")
     print(f"{'regularizer':<22} {'mean s':>8} {'median s':>9} {'vs none':>8} {'samples/step':>13}")
     for row in costs:
         print(f"{row['regularizer']:<22} {row['step_s']:>8.3f} {row['median_s']:>9.3f} {row['ratio_vs_none']:>8.2f} {row['samples_per_step']:>13.0f}")

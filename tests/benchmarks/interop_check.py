@@ -5,7 +5,7 @@
 
 Not part of the test suite, and it installs nothing. It:
 1. exports the model with `--texture-size 1024 --textured-faces 30000 --pose POSE --all` (canonical.glb:
-   rigged, vertex colours, the capture's poses as an animation; textured/avatar.glb: decimated,
+   rigged, vertex colors, the capture's poses as an animation; textured/avatar.glb: decimated,
    textured, animated) twice, with 4 and with 8 influences, and runs `animate walk --glb`;
 2. runs the Khronos glTF validator (`npm install gltf-validator` in --validator-dir, then node) on
    every GLB and records errors/warnings/infos;
@@ -14,7 +14,7 @@ Not part of the test suite, and it installs nothing. It:
    evaluates the skinned mesh at --frames and compares its vertices with igavatar's posed meshes of the
    same frames (`export --pose` posed/<frame>.ply), against the drift the manifest reports; and
    renders the textured avatar with Cycles (a PNG to look at);
-4. renders the full-resolution vertex-coloured mesh and the textured decimated mesh from 4 views
+4. renders the full-resolution vertex-colored mesh and the textured decimated mesh from 4 views
    (igavatar's ray caster, the same cameras) and reports the texture's PSNR against the former.
 Results go to --out/interop.json and interop.md.
 """
@@ -120,21 +120,21 @@ def compare_frames(probe: dict, mesh_dir: Path, glb_record: dict, frame_names: l
     return rows
 
 
-def render_views(vertices: np.ndarray, faces: np.ndarray, colour_at_hits, size: int, axes_list) -> list[np.ndarray]:
-    """sRGB float images on white of a mesh from cameras framing it; colour_at_hits(hits) -> (R, 3)."""
+def render_views(vertices: np.ndarray, faces: np.ndarray, color_at_hits, size: int, axes_list) -> list[np.ndarray]:
+    """sRGB float images on white of a mesh from cameras framing it; color_at_hits(hits) -> (R, 3)."""
     caster = MeshRayCaster(vertices, faces)
     images = []
     for K, w2c in axes_list:
         rays = CameraRays(K, w2c, size, size, supersample=1)
         directions = rays.directions.reshape(-1, 3)
         hits = caster.first_hits(np.broadcast_to(rays.origin, directions.shape), directions)
-        rgb = np.where(hits.hit[:, None], colour_at_hits(hits), 1.0)
+        rgb = np.where(hits.hit[:, None], color_at_hits(hits), 1.0)
         images.append(rgb.reshape(size, size, 3))
     return images
 
 
 def texture_psnr(mesh_dir: Path, body_axes: np.ndarray, size: int = 512) -> dict:
-    """PSNR of the textured decimated mesh against the full vertex-coloured mesh, 4 views about the body."""
+    """PSNR of the textured decimated mesh against the full vertex-colored mesh, 4 views about the body."""
     full = trimesh.load(mesh_dir / "canonical.ply", process=False)
     glb = read_rigged_glb(mesh_dir / "textured" / "avatar.glb")
     texture = cv2.cvtColor(cv2.imread(str(mesh_dir / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
@@ -147,9 +147,9 @@ def texture_psnr(mesh_dir: Path, body_axes: np.ndarray, size: int = 512) -> dict
         axes = np.stack((np.cos(turn) * left + np.sin(turn) * forward, up,
                          -np.sin(turn) * left + np.cos(turn) * forward), axis=1)
         cameras.append(frontal_camera(np.asarray(full.vertices), axes, size))
-    colours = np.asarray(full.visual.vertex_colors)[:, :3] / 255.0
+    colors = np.asarray(full.visual.vertex_colors)[:, :3] / 255.0
     reference = render_views(np.asarray(full.vertices), np.asarray(full.faces),
-                             lambda hits: interpolate_vertex_values(colours, np.asarray(full.faces), hits), size, cameras)
+                             lambda hits: interpolate_vertex_values(colors, np.asarray(full.faces), hits), size, cameras)
 
     def sample(hits):
         return sample_texture(texture, interpolate_vertex_values(glb["uv"], glb["faces"], hits))
@@ -163,12 +163,12 @@ def texture_psnr(mesh_dir: Path, body_axes: np.ndarray, size: int = 512) -> dict
     cv2.imwrite(str(mesh_dir.parent / "psnr_views.png"), cv2.cvtColor((sheet * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
     return {"views": rows, "mean_psnr_db": float(np.mean([r["psnr_db"] for r in rows])), "size": size,
             "sheet": str(mesh_dir.parent / "psnr_views.png"),
-            "note": "top row: full vertex-coloured mesh; bottom: decimated textured mesh; white background"}
+            "note": "top row: full vertex-colored mesh; bottom: decimated textured mesh; white background"}
 
 
 def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
     """PSNR inside the subject's mask against the capture's own images (ground truth) of 4 training
-    views, for the full vertex-coloured posed mesh (posed/<frame>.ply) and for the textured decimated
+    views, for the full vertex-colored posed mesh (posed/<frame>.ply) and for the textured decimated
     mesh posed the same way (igavatar's posing, so only the texture differs), both ray cast with the
     capture's camera. Acceptance: the textured mesh within 1.5 dB of the full one."""
     from igavatar.body.pose_files import read_pose_sequence, sequence_local_pose
@@ -201,26 +201,26 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
 
         full = trimesh.load(mesh_dir / "posed" / f"{name}.ply", process=False)
         hits = MeshRayCaster(np.asarray(full.vertices), np.asarray(full.faces)).first_hits(origins, directions)
-        colours = np.asarray(full.visual.vertex_colors)[:, :3] / 255.0
-        render_full = np.where(hits.hit[:, None], interpolate_vertex_values(colours, np.asarray(full.faces), hits), 0.0)
+        colors = np.asarray(full.visual.vertex_colors)[:, :3] / 255.0
+        render_full = np.where(hits.hit[:, None], interpolate_vertex_values(colors, np.asarray(full.faces), hits), 0.0)
 
         x_posed = model.posed(posed.bone_transforms[index], posed.pose_condition[index]).pose_vertices(canonical_textured)
         hits = MeshRayCaster(x_posed, glb["faces"]).first_hits(origins, directions)
         uv = interpolate_vertex_values(glb["uv"], glb["faces"], hits)
         render_tex = np.where(hits.hit[:, None], sample_texture(texture, uv), 0.0)
         row = {"frame": name}
-        for label, render in (("full_vertex_colour", render_full), ("textured", render_tex)):
+        for label, render in (("full_vertex_color", render_full), ("textured", render_tex)):
             diff = (render.reshape(height, width, 3) - image)[mask]
             row[f"{label}_psnr_db"] = float(10 * np.log10(1.0 / max(float(np.mean(diff ** 2)), 1e-12)))
         rows.append(row)
         panels.append(np.concatenate([image, render_full.reshape(height, width, 3), render_tex.reshape(height, width, 3)], axis=0))
     sheet = np.concatenate(panels, axis=1)
     cv2.imwrite(str(mesh_dir.parent / "capture_psnr_views.png"), cv2.cvtColor((sheet * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
-    mean_full = float(np.mean([r["full_vertex_colour_psnr_db"] for r in rows]))
+    mean_full = float(np.mean([r["full_vertex_color_psnr_db"] for r in rows]))
     mean_tex = float(np.mean([r["textured_psnr_db"] for r in rows]))
-    return {"views": rows, "mean_full_vertex_colour_psnr_db": mean_full, "mean_textured_psnr_db": mean_tex,
+    return {"views": rows, "mean_full_vertex_color_psnr_db": mean_full, "mean_textured_psnr_db": mean_tex,
             "textured_minus_full_db": mean_tex - mean_full, "sheet": str(mesh_dir.parent / "capture_psnr_views.png"),
-            "note": "PSNR inside the capture's subject mask; sheet rows: capture image, full vertex-coloured, textured"}
+            "note": "PSNR inside the capture's subject mask; sheet rows: capture image, full vertex-colored, textured"}
 
 
 def markdown(report: dict) -> str:
@@ -242,7 +242,7 @@ def markdown(report: dict) -> str:
             continue
         action = probe.get("action") or {}
         texture = ", ".join(f"{t['size'][0]}x{t['size'][1]}" + (" -> Base Color" if t["to_base_color"] else "")
-                            for t in probe.get("textures", [])) or "vertex colours"
+                            for t in probe.get("textures", [])) or "vertex colors"
         lines.append(f"| {label} | {probe.get('bones')} | {probe['vertices']} | {probe['max_influences']} | {texture} | "
                      f"{action.get('frame_range')} | {probe.get('head_above_feet_m', float('nan')):.3f} | "
                      f"{probe.get('motion_between_keys_mm', 0):.0f} |")
@@ -268,12 +268,12 @@ def markdown(report: dict) -> str:
                      f"{export['bytes']['canonical.glb']} B; textured mesh build {timings.get('textured_s', float('nan')):.1f} s, "
                      f"whole export {timings['total_s']:.1f} s")
     psnr = report["texture_psnr"]
-    lines.append(f"- textured vs full vertex-coloured render, 4 views ({psnr['size']} px): "
+    lines.append(f"- textured vs full vertex-colored render, 4 views ({psnr['size']} px): "
                  + ", ".join(f"{r['view']} {r['psnr_db']:.2f} dB" for r in psnr["views"]) + f"; mean {psnr['mean_psnr_db']:.2f} dB")
     capture = report.get("capture_psnr")
     if capture:
-        lines.append(f"- against the capture's images (inside the mask, 4 training views): full vertex-coloured "
-                     f"{capture['mean_full_vertex_colour_psnr_db']:.2f} dB, textured {capture['mean_textured_psnr_db']:.2f} dB "
+        lines.append(f"- against the capture's images (inside the mask, 4 training views): full vertex-colored "
+                     f"{capture['mean_full_vertex_color_psnr_db']:.2f} dB, textured {capture['mean_textured_psnr_db']:.2f} dB "
                      f"(difference {capture['textured_minus_full_db']:+.2f} dB)")
     return "\n".join(lines) + "\n"
 
