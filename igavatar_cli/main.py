@@ -218,7 +218,7 @@ def train(
     out: Annotated[Optional[Path], typer.Option(help="Model directory to write [default: RUN_DIR/model].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     preset: Annotated[str, typer.Option(help="paper (GPU, the paper's settings), cpu (~10 min on 2 cores) or tiny (tests).")] = "cpu",
-    steps: Annotated[Optional[int], typer.Option(help="Optimisation steps [default: the preset's].")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Optimization steps [default: the preset's].")] = None,
     rays: Annotated[Optional[int], typer.Option("--rays", help="Rays per step [default: the preset's].")] = None,
     samples: Annotated[Optional[int], typer.Option("--samples", help="Samples per ray before empty-space skipping.")] = None,
     regularizer: Annotated[
@@ -231,8 +231,8 @@ def train(
     smooth_form: Annotated[
         Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")
     ] = None,
-    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (metres) when photometric training starts [default: the preset's].")] = None,
-    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (metres): the rendered silhouette sits ~2 beta outside the surface, so a smaller cap means less inward bias [default: the preset's].")] = None,
+    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts [default: the preset's].")] = None,
+    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~2 beta outside the surface, so a smaller cap means less inward bias [default: the preset's].")] = None,
     free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) [default: the preset's].")] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")

@@ -3,7 +3,7 @@
     summary = run_export(ExportOptions(model=Path("run/model"), out=Path("run/mesh")))
     summary = run_export(ExportOptions(model=..., out=..., pose=Path("run/capture"), all_frames=True, exr=True))
 
-Mesh layout (schema `mesh`, version 1; every position in metres):
+Mesh layout (schema `mesh`, version 1; every position in meters):
     canonical.ply, canonical.obj   the canonical-space surface with sRGB vertex colors
     canonical.glb                  rigged: the same mesh, the skeleton (joints named, bind pose = the
                                    canonical pose), the 4 (--influences 8: 8, as JOINTS_0/1) largest

@@ -53,7 +53,7 @@ from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
 
-#: Margin (metres) around the template for clothing, hair and loose garments.
+#: Margin (meters) around the template for clothing, hair and loose garments.
 BOX_MARGIN_M = 0.12
 #: A bare skeleton's shape prior is the masks' visual hull when at least this many training frames
 #: vote (fewer views leave a hull too coarse to trust; capsules around the bones are used then).
@@ -68,7 +68,7 @@ SHAPE_PRIORS = ("auto", "visual-hull")
 HULL_PRIOR_VERSION = 2
 #: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
 HULL_BOX_SQUEEZE = 3.0
-#: Grid spacing (metres) of the hull prior.
+#: Grid spacing (meters) of the hull prior.
 HULL_CELL_M = 0.02
 #: Blur passes over a template's skinning-weight grid (InstantAvatar's recipe), unless
 #: --weight-smoothing says otherwise.

@@ -291,7 +291,7 @@ REST_SURFACE_INFLUENCES = 8
 
 
 def _write_rest_surface(path: Path, subject: ClothedSubject) -> None:
-    """vertices (V, 3), faces (F, 3), top-k joint indices and renormalised weights (V, k)."""
+    """vertices (V, 3), faces (F, 3), top-k joint indices and renormalized weights (V, k)."""
     weights = np.asarray(subject.weights, np.float32)
     top = np.argsort(-weights, axis=1)[:, :REST_SURFACE_INFLUENCES]
     value = np.take_along_axis(weights, top, axis=1)

@@ -5,7 +5,7 @@
 Model layout (schema `model`, version 1):
     weights.npz          avatar parameters and buffers, canonical occupancy grid (no pickle)
     subject.npz          skeleton, skinning grid and boxes (copied from the dataset)
-    shape_init.npz       SDF weights after shape initialisation (reused by later runs)
+    shape_init.npz       SDF weights after shape initialization (reused by later runs)
     training_log.csv     step, losses, PSNR, beta, samples, seconds
     validation/*.png     ground truth | render | normals of a training and a test frame
 
@@ -92,12 +92,12 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:
-            raise InputError(f"--beta-init {options.beta_init}: expected metres in [1e-4, 1]")
+            raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")
         density = dataclasses.replace(config.avatar.density, beta_init=options.beta_init)
         config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, density=density))
     if options.beta_final is not None:
         if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:
-            raise InputError(f"--beta-final {options.beta_final}: expected metres in [1e-4, beta_init = {config.avatar.density.beta_init}]")
+            raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
     return config
 
@@ -106,13 +106,13 @@ def config_to_json(config: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
-#: Bump when the shape initialisation's targets or optimisation change, so that caches written
+#: Bump when the shape initialization's targets or optimization change, so that caches written
 #: by an older version are not reused as if they were the same fit.
 SHAPE_INIT_VERSION = 2
 
 
 def _shape_init_key(config: TrainConfig, template_sha: str | None, canonical_box: np.ndarray) -> str:
-    """Everything that decides the shape initialisation's result (the cache is reused only on a match)."""
+    """Everything that decides the shape initialization's result (the cache is reused only on a match)."""
     return sha256_json({"version": SHAPE_INIT_VERSION, "sdf": dataclasses.asdict(config.avatar.sdf),
                         "steps": config.shape_init_steps, "points": config.shape_init_points,
                         "template": template_sha, "canonical_box": np.asarray(canonical_box, np.float64).round(7).tolist(),
@@ -128,7 +128,7 @@ def _snapshot(state: dict) -> dict:
     return {name: value.detach().clone() for name, value in state.items()}
 
 
-def _shape_initialise(
+def _shape_initialize(
     avatar: Avatar, config: TrainConfig, dataset: DatasetArtifact, cache_paths: list[Path], progress: ProgressSink
 ) -> tuple[dict, float]:
     """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds)."""
@@ -140,7 +140,7 @@ def _shape_initialise(
             cached = load_state(path)
             if cached.get("key") == key:
                 avatar.sdf_field.load_state_dict(cached["sdf"])
-                progress.status(f"shape initialisation reused from {path}")
+                progress.status(f"shape initialization reused from {path}")
                 return cached, 0.0
     started = time.perf_counter()
     if template.is_file() and config.shape_init_steps > 0:
@@ -148,7 +148,7 @@ def _shape_initialise(
 
         mesh = trimesh.load(template, process=False)
         targets = template_sdf_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces), canonical_box, seed=config.seed)
-        with progress.task("shape initialisation", total=config.shape_init_steps) as advance:
+        with progress.task("shape initialization", total=config.shape_init_steps) as advance:
             fit_sdf_to_template(
                 avatar.sdf_field, targets, config.shape_init_steps, config.shape_init_points, seed=config.seed,
                 on_step=lambda step, loss: advance(1, loss=f"{loss:.4f}"),
@@ -328,7 +328,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     config_json = config_to_json(config)
     dataset_sha = sha256_file(dataset.path / "manifest.json")
     run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
-    shape_state, shape_seconds = _shape_initialise(
+    shape_state, shape_seconds = _shape_initialize(
         avatar, config, dataset, [work / "shape_init.npz", out / "shape_init.npz"], progress
     )
     clock.add("shape_init_s", shape_seconds)

@@ -4,7 +4,7 @@
     write_smpl_pkl(tmp_path / "SMPL_NEUTRAL.pkl", arrays)   # also write_smpl_npz, write_chumpy_smpl_pkl
     capture = write_smpl_capture(tmp_path / "capture", tmp_path / "SMPL_NEUTRAL.pkl")
 
-The body is a rough 24-joint SMPL-like T-pose (metres, +Y up, facing +Z) with a few hundred
+The body is a rough 24-joint SMPL-like T-pose (meters, +Y up, facing +Z) with a few hundred
 vertices along its bones, smooth skinning weights whose rows sum to 1, a joint regressor whose rows
 sum to 1 (each joint = the mean of two vertices beside it), small random shape and pose blend
 shapes, and kintree_table / dtypes as the official files store them. `load_smplx` opens such a file
@@ -26,7 +26,7 @@ import scipy.sparse
 
 from igavatar.body.skeleton import SMPL_PARENTS
 
-# A rough SMPL neutral T-pose skeleton (metres): left is +X, up +Y, the face looks towards +Z.
+# A rough SMPL neutral T-pose skeleton (meters): left is +X, up +Y, the face looks towards +Z.
 SMPL_LIKE_REST_JOINTS = np.array([
     [0.00, 0.00, 0.00], [0.06, -0.09, 0.00], [-0.06, -0.09, 0.00], [0.00, 0.11, -0.02],
     [0.10, -0.47, 0.00], [-0.10, -0.47, 0.00], [0.00, 0.25, 0.00], [0.09, -0.87, -0.04],
@@ -69,12 +69,12 @@ def make_smpl_arrays(seed: int = 0, points_per_bone: int = 10) -> dict:
     for j in range(num_joints):  # each joint is the mean of its two vertices, before and after shaping
         regressor[j, [first_pair + j, first_pair + num_joints + j]] = 0.5
 
-    # Weights: Gaussian falloff from each joint's bone centre (towards its children), top 4 kept.
+    # Weights: Gaussian falloff from each joint's bone center (towards its children), top 4 kept.
     children = [[c for c in range(num_joints) if SMPL_PARENTS[c] == j] for j in range(num_joints)]
-    centres = np.array([
+    centers = np.array([
         0.5 * (joints[j] + joints[kids].mean(0)) if kids else joints[j] for j, kids in enumerate(children)
     ])
-    logits = -((vertices[:, None] - centres[None]) ** 2).sum(-1) / (2 * 0.08**2)
+    logits = -((vertices[:, None] - centers[None]) ** 2).sum(-1) / (2 * 0.08**2)
     keep = np.argsort(logits, axis=1)[:, -4:]
     weights = np.zeros((num_vertices, num_joints))
     kept = np.take_along_axis(logits, keep, axis=1)

@@ -2,7 +2,7 @@
 
     skeleton = smpl_like_skeleton()       # Skeleton with SMPL_PARENTS and SMPL_JOINT_NAMES
 
-The numbers are rounded from a typical neutral SMPL body (metres); no SMPL file is involved.
+The numbers are rounded from a typical neutral SMPL body (meters); no SMPL file is involved.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ from igavatar.mesh.gltf import gltf_axes, gltf_pose, pose_glb_vertices, pose_rel
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import (
     box_corners,
-    camera_centres,
+    camera_centers,
     fit_intrinsics,
     look_at_w2c,
     orbit_w2c,
@@ -45,13 +45,13 @@ def _project(K: torch.Tensor, w2c: torch.Tensor, x: torch.Tensor) -> torch.Tenso
 
 
 # ------------------------------------------------------------------------------ camera helpers
-def test_look_at_centres_the_target_and_keeps_up_upright():
+def test_look_at_centers_the_target_and_keeps_up_upright():
     eye, target, up = torch.tensor([1.0, -3.0, 0.5]), torch.tensor([0.2, 0.1, 0.3]), torch.tensor([0.0, 0.0, 1.0])
     w2c = look_at_w2c(eye, target, up)
     rotation = w2c[:3, :3].double()
     assert torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-6)
     assert torch.linalg.det(rotation) == pytest.approx(1.0, abs=1e-6)
-    assert torch.allclose(camera_centres(w2c), eye, atol=1e-5)
+    assert torch.allclose(camera_centers(w2c), eye, atol=1e-5)
     target_camera = w2c[:3, :3] @ target + w2c[:3, 3]
     assert target_camera[:2].abs().max() < 1e-5 and target_camera[2] > 0  # on the optical axis, ahead
     up_camera = w2c[:3, :3] @ up
@@ -59,17 +59,17 @@ def test_look_at_centres_the_target_and_keeps_up_upright():
 
 
 def test_orbit_keeps_distance_elevation_and_starts_in_front():
-    centre, up, front = torch.tensor([0.5, 0.0, 1.0]), torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, -1.0, 0.0])
+    center, up, front = torch.tensor([0.5, 0.0, 1.0]), torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, -1.0, 0.0])
     elevation = math.radians(20.0)
     azimuths = torch.linspace(0, 2 * math.pi, 7)[:-1]
-    w2c = orbit_w2c(centre, 2.5, azimuths, up=up, front=front, elevation=elevation)
-    eyes = camera_centres(w2c)
-    assert torch.allclose((eyes - centre).norm(dim=-1), torch.full((6,), 2.5), atol=1e-5)
-    assert torch.allclose(eyes[:, 2] - centre[2], torch.full((6,), 2.5 * math.sin(elevation)), atol=1e-5)
-    horizontal = (eyes[0] - centre) * torch.tensor([1.0, 1.0, 0.0])
+    w2c = orbit_w2c(center, 2.5, azimuths, up=up, front=front, elevation=elevation)
+    eyes = camera_centers(w2c)
+    assert torch.allclose((eyes - center).norm(dim=-1), torch.full((6,), 2.5), atol=1e-5)
+    assert torch.allclose(eyes[:, 2] - center[2], torch.full((6,), 2.5 * math.sin(elevation)), atol=1e-5)
+    horizontal = (eyes[0] - center) * torch.tensor([1.0, 1.0, 0.0])
     assert torch.allclose(horizontal / horizontal.norm(), front, atol=1e-6)
     # Counter-clockwise seen from above: the second camera is a sixth of a turn towards +x here.
-    assert eyes[1, 0] > centre[0]
+    assert eyes[1, 0] > center[0]
 
 
 def test_fit_intrinsics_frames_the_box_tightly_in_every_view():
@@ -82,7 +82,7 @@ def test_fit_intrinsics_frames_the_box_tightly_in_every_view():
         uv = _project(K, view, corners)
         gap_x = torch.minimum(uv[:, 0] + 0.5, 60 - 0.5 - uv[:, 0]) / 60
         gap_y = torch.minimum(uv[:, 1] + 0.5, 40 - 0.5 - uv[:, 1]) / 40
-        # +-0.5: the image spans [-0.5, W - 0.5] with pixel centres at integers.
+        # +-0.5: the image spans [-0.5, W - 0.5] with pixel centers at integers.
         assert (gap_x >= 0.1 - 1e-3).all() and (gap_y >= 0.1 - 1e-3).all()
         worst_gap = min(worst_gap, float(gap_x.min()), float(gap_y.min()))
     assert worst_gap == pytest.approx(0.1, abs=2e-3)  # tight: some corner touches the margin
@@ -90,7 +90,7 @@ def test_fit_intrinsics_frames_the_box_tightly_in_every_view():
         fit_intrinsics(torch.tensor([[0.0, 0.0, -1.0]]), torch.eye(4), 10, 10)
 
 
-def test_resize_intrinsics_matches_the_pixel_centre_rule():
+def test_resize_intrinsics_matches_the_pixel_center_rule():
     K = torch.tensor([[300.0, 0.0, 255.5], [0.0, 310.0, 200.0], [0.0, 0.0, 1.0]])
     resized = resize_intrinsics(K, (400, 512), (100, 128))
     assert np.allclose(resized.numpy(), scale_intrinsics(K.numpy(), (128 / 512, 100 / 400)), atol=1e-5)
@@ -299,7 +299,7 @@ def test_cli_animate_capture_camera_and_json_summary(cli_runner, tiny_model, sma
     assert result.exit_code == 0, result.output
     summary = json.loads(result.output)
     assert summary["frames"] == 2 and summary["camera"] == "capture" and summary["motion"] == "squat"
-    # The dataset's camera, rescaled from 64x64 to 16x16 by the pixel-centre rule.
+    # The dataset's camera, rescaled from 64x64 to 16x16 by the pixel-center rule.
     with np.load(small_run / "dataset" / "frames.npz") as frames:
         expected_K = scale_intrinsics(frames["K"][0], (0.25, 0.25))
         expected_w2c = frames["w2c"][0]

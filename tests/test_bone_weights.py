@@ -108,7 +108,7 @@ def test_bad_inputs_name_the_shape(smpl_canonical):
 
 def test_bone_weights_pose_annys_template_almost_like_its_own_weights():
     """Anny's canonical template posed for the synthetic test motions with bone-derived grid weights
-    lands within a few centimetres of the template posed with Anny's real skinning weights."""
+    lands within a few centimeters of the template posed with Anny's real skinning weights."""
     from igavatar.body.anny_body import AnnyBody
     from igavatar.body.motions import motion_by_name
     from igavatar.body.rotations import invert_rigid

@@ -43,9 +43,9 @@ RESOLUTION = 40  # marching cubes samples: small so the module stays fast on two
 class SphereSDF(torch.nn.Module):
     """An exact sphere SDF with the SDFField interface (zero features), to test extraction exactly."""
 
-    def __init__(self, centre: tuple[float, float, float], radius: float, feature_dim: int) -> None:
+    def __init__(self, center: tuple[float, float, float], radius: float, feature_dim: int) -> None:
         super().__init__()
-        self.register_buffer("centre", torch.tensor(centre))
+        self.register_buffer("centre", torch.tensor(center))
         self.radius = radius
         self.feature_dim = feature_dim
 
@@ -58,12 +58,12 @@ class SphereSDF(torch.nn.Module):
         return sdf, feature, torch.nn.functional.normalize(x - self.centre, dim=-1)
 
 
-def sphere_avatar(half_size: float, radius: float, centre=(0.0, 0.0, 0.0)) -> Avatar:
+def sphere_avatar(half_size: float, radius: float, center=(0.0, 0.0, 0.0)) -> Avatar:
     """A one-bone avatar whose canonical SDF is an exact sphere inside a cubic canonical box."""
     config = preset("tiny").avatar
     box = torch.tensor([[-half_size] * 3, [half_size] * 3])
     avatar = Avatar(config, box, torch.ones(1, 4, 4, 4), box[0] - 0.2, box[1] + 0.2, pose_dim=3, init_bones=(0,))
-    avatar.sdf_field = SphereSDF(centre, radius, config.sdf.feature_dim)
+    avatar.sdf_field = SphereSDF(center, radius, config.sdf.feature_dim)
     return avatar.eval()
 
 
@@ -81,10 +81,10 @@ def posed_export(small_run, tiny_model, tmp_path_factory) -> Path:
 
 
 def test_sphere_canonical_mesh_has_the_radius_and_is_watertight():
-    radius, centre = 0.45, np.array([0.05, -0.1, 0.02])
-    avatar = sphere_avatar(0.7, radius, tuple(centre))
+    radius, center = 0.45, np.array([0.05, -0.1, 0.02])
+    avatar = sphere_avatar(0.7, radius, tuple(center))
     vertices, faces = canonical_surface(avatar, resolution=48, coarse_resolution=24)
-    distance = np.linalg.norm(vertices - centre, axis=1)
+    distance = np.linalg.norm(vertices - center, axis=1)
     # Linear interpolation along grid edges cuts chords: about h^2 / (8 r) inside, h ~ 2.5 cm here.
     assert np.abs(distance - radius).max() < 5e-4
     assert is_watertight(vertices, faces)
@@ -123,12 +123,12 @@ def test_depth_and_normal_maps_of_a_sphere_from_the_frontal_camera():
     axes = np.stack(([1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]), axis=1)  # Anny: left +X, up +Z, forward -Y
     K, w2c = frontal_camera(vertices, axes, size=65)
     maps = mesh_maps(vertices, np.asarray(sphere.faces), colors, K, w2c, 65)
-    centre_camera = w2c[:3, :3] @ np.array([0.1, 0.2, 1.0]) + w2c[:3, 3]
-    assert centre_camera[:2] == pytest.approx([0, 0], abs=1e-9)  # looks at the centre
+    center_camera = w2c[:3, :3] @ np.array([0.1, 0.2, 1.0]) + w2c[:3, 3]
+    assert center_camera[:2] == pytest.approx([0, 0], abs=1e-9)  # looks at the center
     camera_position = -w2c[:3, :3].T @ w2c[:3, 3]
     assert (camera_position - [0.1, 0.2, 1.0]) @ [0, -1, 0] > 0  # in front of the face (-Y)
     assert maps["A"][32, 32] == 1 and maps["A"][0, 0] == 0
-    assert maps["Z"][32, 32] == pytest.approx(centre_camera[2] - 0.5, abs=2e-3)
+    assert maps["Z"][32, 32] == pytest.approx(center_camera[2] - 0.5, abs=2e-3)
     np.testing.assert_allclose(maps["N"][32, 32], [0, -1, 0], atol=0.02)  # facing the camera
     hit = maps["A"] > 0
     assert np.allclose(np.linalg.norm(maps["N"][hit], axis=-1), 1, atol=1e-4)

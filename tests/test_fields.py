@@ -1,4 +1,4 @@
-"""Canonical fields: sphere initialisation, analytic SDF gradient, eikonal training gradient, density.
+"""Canonical fields: sphere initialization, analytic SDF gradient, eikonal training gradient, density.
 
     .venv/bin/python -m pytest tests/test_fields.py -q
 """
@@ -23,7 +23,7 @@ from igavatar.model.hashgrid import HashGridConfig
 SMALL_GRID = HashGridConfig(n_levels=4, log2_hashmap_size=10, base_resolution=4, finest_resolution=40)
 BOX_MIN = torch.tensor([-0.8, -1.1, -0.3])
 BOX_MAX = torch.tensor([0.6, 1.2, 0.5])
-CENTRE = 0.5 * (BOX_MIN + BOX_MAX)
+CENTER = 0.5 * (BOX_MIN + BOX_MAX)
 
 
 def make_field(n_hidden_layers=1, radius=0.4, dtype=torch.float32, seed=0, perturb_table=0.0):
@@ -48,9 +48,9 @@ def test_initial_sdf_is_the_sphere(n_hidden_layers):
     x = box_points(20000)
     with torch.no_grad():
         sdf, feature, grad = field.forward_with_gradient(x)
-    analytic = (x - CENTRE).norm(dim=-1) - 0.4
+    analytic = (x - CENTER).norm(dim=-1) - 0.4
     assert feature.shape == (20000, 16) and torch.equal(sdf, feature[:, 0])
-    # Softplus rounds the cone apex at the centre by ~1.5 cm; the Fibonacci directions leave a ~1 %
+    # Softplus rounds the cone apex at the center by ~1.5 cm; the Fibonacci directions leave a ~1 %
     # direction-dependent gain, i.e. mm-level errors near the surface.
     assert (sdf - analytic).abs().max() < 0.025
     near_surface = analytic.abs() < 0.05
@@ -58,8 +58,8 @@ def test_initial_sdf_is_the_sphere(n_hidden_layers):
     assert ((sdf - analytic)[near_surface]).abs().max() < 0.008
     norms = grad[near_surface].norm(dim=-1)
     assert (norms - 1).abs().max() < 0.03
-    # The gradient points away from the centre (outward normal of the sphere).
-    radial = torch.nn.functional.normalize(x - CENTRE, dim=-1)
+    # The gradient points away from the center (outward normal of the sphere).
+    radial = torch.nn.functional.normalize(x - CENTER, dim=-1)
     assert (torch.nn.functional.cosine_similarity(grad[near_surface], radial[near_surface]) > 0.99).all()
 
 
@@ -67,8 +67,8 @@ def test_sphere_outside_the_box_and_custom_radius():
     field = make_field(radius=0.25)
     directions = fibonacci_sphere(200).float()
     with torch.no_grad():
-        on_surface, _ = field(CENTRE + 0.25 * directions)
-        far, _ = field(CENTRE + 2.0 * directions)  # well outside the box: hash features clamped
+        on_surface, _ = field(CENTER + 0.25 * directions)
+        far, _ = field(CENTER + 2.0 * directions)  # well outside the box: hash features clamped
     assert on_surface.abs().max() < 0.005
     assert ((far - 1.75).abs() < 0.04).all()  # ~1 % direction-dependent gain far out
 
@@ -119,7 +119,7 @@ def test_eikonal_gradient_matches_double_backward():
     assert ours["encoding.table"].abs().max() > 0
 
 
-def test_eikonal_reaches_the_table_at_initialisation():
+def test_eikonal_reaches_the_table_at_initialization():
     field = make_field()
     _, _, grad = field.forward_with_gradient(box_points(1000))
     ((grad.norm(dim=-1) - 1.2) ** 2).mean().backward()
@@ -163,7 +163,7 @@ def test_laplace_density():
 def test_laplace_density_beta_floor_keeps_a_gradient():
     density = LaplaceDensity(LaplaceDensityConfig(beta_init=0.1, beta_min=1e-4))
     with torch.no_grad():
-        density.beta_offset.fill_(-5e-5)  # an optimiser step overshot past zero
+        density.beta_offset.fill_(-5e-5)  # an optimizer step overshot past zero
     assert density.beta.item() >= 1e-4
     density(torch.tensor([0.0])).sum().backward()
     assert density.beta_offset.grad.abs().item() > 0
@@ -230,7 +230,7 @@ def test_hybrid_encoding_gradient_matches_autograd_and_levels_open_coarse_to_fin
     sdf, _, grad = field.forward_with_gradient(x)
     (reference,) = torch.autograd.grad(field(x)[0].sum(), x)
     torch.testing.assert_close(grad, reference, rtol=1e-9, atol=1e-9)
-    # Sphere initialisation is not disturbed by the (zero-initialised) positional-encoding columns.
+    # Sphere initialization is not disturbed by the (zero-initialized) positional-encoding columns.
     import dataclasses
 
     points = torch.nn.functional.normalize(torch.randn(256, 3), dim=-1) * 0.5
@@ -269,8 +269,8 @@ def test_mlp_only_sdf_has_no_grid_and_an_exact_gradient():
     assert field.encoding is None and not any("encoding" in name for name, _ in field.named_parameters())
     x = box_points(64, torch.float64)
     sdf, _, grad = field.forward_with_gradient(x)
-    # Geometric initialisation still gives the sphere.
-    assert torch.allclose(sdf, (x - CENTRE.double()).norm(dim=1) - 0.4, atol=0.025)
+    # Geometric initialization still gives the sphere.
+    assert torch.allclose(sdf, (x - CENTER.double()).norm(dim=1) - 0.4, atol=0.025)
     with torch.no_grad():  # perturb so the positional-encoding columns matter
         field.layers[0].weight.normal_(0.0, 0.3)
     sdf, _, grad = field.forward_with_gradient(x)

@@ -25,7 +25,7 @@ from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
 from stages.synth import SynthOptions, run_synth
 from stages.train import TrainOptions, run_train
-from test_visual_hull import BOX, CENTRES, FRONT, RADIUS, UP, sphere_masks
+from test_visual_hull import BOX, CENTERS, FRONT, RADIUS, UP, sphere_masks
 
 
 def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
@@ -39,14 +39,14 @@ def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
     mesh = trimesh.Trimesh(hull.vertices.numpy(), hull.faces.numpy(), process=False)
     assert mesh.is_watertight and mesh.volume > 0  # closed, normals outwards
     # The largest part only: the two spheres are two parts, so the hull keeps one of them whole.
-    kept = [bool(mesh.contains(c[None].numpy())[0]) for c in CENTRES]
+    kept = [bool(mesh.contains(c[None].numpy())[0]) for c in CENTERS]
     assert sum(kept) == 1
     sphere_volume = 4.0 / 3.0 * math.pi * RADIUS**3
     assert sphere_volume * 0.9 < mesh.volume < sphere_volume * 2.5
     # Every point of the kept sphere's surface lies inside the hull or within a cell of it.
-    centre = CENTRES[kept.index(True)]
+    center = CENTERS[kept.index(True)]
     directions = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(0)), dim=1)
-    surface = (centre + RADIUS * directions).numpy()
+    surface = (center + RADIUS * directions).numpy()
     outside = ~mesh.contains(surface)
     distance = np.abs(trimesh.proximity.signed_distance(mesh, surface[outside])) if outside.any() else np.zeros(0)
     assert (distance < 0.02).all()

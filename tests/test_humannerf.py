@@ -63,7 +63,7 @@ def write_humannerf_subject(root: Path, n_frames: int = 6) -> dict:
         mesh_infos[name] = {"Rh": Rh, "Th": Th, "poses": poses, "joints": joints, "tpose_joints": SMPL_LIKE_REST_JOINTS.copy()}
         cameras[name] = {"intrinsics": K, "extrinsics": w2c, "distortions": DIST.reshape(5, 1)}
         world_joints[name] = joints @ Rotation.from_rotvec(Rh).as_matrix().T + Th
-        # The subject: joints projected and dilated; the image is noise inside, grey outside.
+        # The subject: joints projected and dilated; the image is noise inside, gray outside.
         uv, _ = cv2.projectPoints(world_joints[name], cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], K, DIST)
         mask = np.zeros((SIZE, SIZE), np.uint8)
         for u, v in uv.reshape(-1, 2):

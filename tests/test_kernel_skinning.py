@@ -27,7 +27,7 @@ def kernel():
 
 
 def _points_around_box(box_min, box_max, count, seed):
-    """Points inside, outside, exactly on the faces and exactly on voxel centres of the box."""
+    """Points inside, outside, exactly on the faces and exactly on voxel centers of the box."""
     generator = torch.Generator().manual_seed(seed)
     extent = box_max - box_min
     u = torch.rand(count, 3, generator=generator) * 1.4 - 0.2  # 20% beyond each face
@@ -40,7 +40,7 @@ def test_lookups_equal_grid_sample(kernel):
     values = torch.randn(7, 5, 6, 9, generator=generator)  # (C, D, H, W)
     box_min, box_max = torch.tensor([-0.5, -1.0, 0.2]), torch.tensor([0.7, 1.5, 0.9])
     x = _points_around_box(box_min, box_max, 2000, seed=1)
-    # Exactly on voxel centres too (align_corners=True puts voxels on the box faces).
+    # Exactly on voxel centers too (align_corners=True puts voxels on the box faces).
     lattice = torch.stack(torch.meshgrid(*(torch.linspace(0, 1, n) for n in (9, 6, 5)), indexing="ij"), -1).reshape(-1, 3)
     x = torch.cat([x, box_min + lattice * (box_max - box_min)])
     blended = torch.randn(12, 5, 6, 9, generator=generator)
@@ -48,7 +48,7 @@ def test_lookups_equal_grid_sample(kernel):
     torch.testing.assert_close(posed, apply_affine(sample_blended_transforms(blended, box_min, box_max, x), x),
                                atol=2e-5, rtol=1e-5)
 
-    starts = x[-600:].reshape(200, 3, 3)  # (N, C, 3), C = 3 channels; includes the voxel-centre points
+    starts = x[-600:].reshape(200, 3, 3)  # (N, C, 3), C = 3 channels; includes the voxel-center points
     grid3 = values[:3]
     diagonal = kernel.sample_diagonal(grid3.permute(1, 2, 3, 0).contiguous(), box_min, box_max, starts)
     full = sample_grid(grid3, box_min, box_max, starts.reshape(-1, 3)).reshape(200, 3, 3)

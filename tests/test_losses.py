@@ -321,7 +321,7 @@ def test_losses_on_rendered_samples_backpropagate_to_field_parameters() -> None:
     assert float(wobble.grad) > 0
 
 
-def test_smooth_loss_released_normalisation_squares_and_divides_by_every_slot() -> None:
+def test_smooth_loss_released_normalization_squares_and_divides_by_every_slot() -> None:
     # One ray of 4 slots with 3 valid samples: normals +x, +x, +y (one change of 90 degrees).
     gradients = torch.tensor([[[1.0, 0, 0], [2.0, 0, 0], [0, 3.0, 0], [0, 0, 1.0]]])
     valid = torch.tensor([[True, True, True, False]])

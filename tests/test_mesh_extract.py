@@ -20,16 +20,16 @@ from igavatar.geometry.extract import extract_mesh
 
 BOX_MIN = np.array([-1.0, -1.0, -1.0])
 BOX_MAX = np.array([1.0, 1.0, 1.0])
-CENTRE = torch.tensor([0.11, -0.07, 0.03])
+CENTER = torch.tensor([0.11, -0.07, 0.03])
 RADIUS = 0.5
 
 
-def sphere_sdf(x: torch.Tensor, centre: torch.Tensor = CENTRE, radius: float = RADIUS) -> torch.Tensor:
-    return (x - centre.to(x)).norm(dim=-1) - radius
+def sphere_sdf(x: torch.Tensor, center: torch.Tensor = CENTER, radius: float = RADIUS) -> torch.Tensor:
+    return (x - center.to(x)).norm(dim=-1) - radius
 
 
 def torus_sdf(x: torch.Tensor) -> torch.Tensor:
-    """Torus around z, major radius 0.5, minor 0.18, centred off the grid lines."""
+    """Torus around z, major radius 0.5, minor 0.18, centerd off the grid lines."""
     p = x - torch.tensor([0.03, -0.02, 0.05])
     ring = torch.stack((p[:, :2].norm(dim=-1) - 0.5, p[:, 2]), dim=-1)
     return ring.norm(dim=-1) - 0.18
@@ -51,7 +51,7 @@ def test_sphere_radius_watertight_outward_euler():
     vertices, faces = extract_mesh(sphere_sdf, BOX_MIN, BOX_MAX, resolution=resolution, coarse_resolution=32)
     assert vertices.dtype == np.float32 and faces.dtype == np.int64
     voxel = voxel_lower_bound(resolution, 2 * RADIUS)
-    radius = np.linalg.norm(vertices - CENTRE.numpy(), axis=1)
+    radius = np.linalg.norm(vertices - CENTER.numpy(), axis=1)
     assert np.abs(radius - RADIUS).mean() < 0.2 * voxel
     assert np.abs(radius - RADIUS).max() < 0.5 * voxel
 
@@ -62,7 +62,7 @@ def test_sphere_radius_watertight_outward_euler():
     # Outward winding: positive signed volume close to the ball's, normals along the radius.
     assert mesh.volume == pytest.approx(4.0 / 3.0 * math.pi * RADIUS**3, rel=5e-3)
     real = mesh.area_faces > 1e-4 * voxel**2
-    radial = (mesh.face_normals * (mesh.triangles_center - CENTRE.numpy()))[real].sum(axis=1)
+    radial = (mesh.face_normals * (mesh.triangles_center - CENTER.numpy()))[real].sum(axis=1)
     assert (radial > 0).all()
 
 
@@ -136,7 +136,7 @@ def test_empty_when_no_surface_and_level_shifts_surface():
     assert vertices.shape == (0, 3) and faces.shape == (0, 3)
     # level = 0.1 is the sphere of radius 0.6.
     vertices, _ = extract_mesh(sphere_sdf, BOX_MIN, BOX_MAX, resolution=64, coarse_resolution=16, level=0.1)
-    assert np.abs(np.linalg.norm(vertices - CENTRE.numpy(), axis=1) - 0.6).mean() < 0.2 * 1.2 / 63
+    assert np.abs(np.linalg.norm(vertices - CENTER.numpy(), axis=1) - 0.6).mean() < 0.2 * 1.2 / 63
 
 
 def test_box_axes_and_sdf_output_shapes():
@@ -213,12 +213,12 @@ def test_keep_largest_drops_the_small_sphere(two_spheres_mesh):
 def test_taubin_smooths_noise_without_shrinking():
     vertices, faces = extract_mesh(sphere_sdf, BOX_MIN, BOX_MAX, resolution=64, coarse_resolution=24)
     rng = np.random.default_rng(0)
-    radial = (vertices - CENTRE.numpy()) / np.linalg.norm(vertices - CENTRE.numpy(), axis=1, keepdims=True)
+    radial = (vertices - CENTER.numpy()) / np.linalg.norm(vertices - CENTER.numpy(), axis=1, keepdims=True)
     noisy = vertices + (0.01 * rng.standard_normal(vertices.shape[0]))[:, None] * radial
     smooth_v, smooth_f, report = clean_mesh(noisy, faces, taubin_steps=10)
     assert report["taubin_steps"] == 10 and smooth_f.shape == faces.shape
-    error_before = np.abs(np.linalg.norm(noisy - CENTRE.numpy(), axis=1) - RADIUS)
-    radius_after = np.linalg.norm(smooth_v - CENTRE.numpy(), axis=1)
+    error_before = np.abs(np.linalg.norm(noisy - CENTER.numpy(), axis=1) - RADIUS)
+    radius_after = np.linalg.norm(smooth_v - CENTER.numpy(), axis=1)
     assert np.abs(radius_after - RADIUS).mean() < 0.5 * error_before.mean()
     assert abs(radius_after.mean() - RADIUS) < 0.01 * RADIUS  # Taubin, unlike Laplacian, keeps the size
     assert is_watertight(smooth_v, smooth_f)
@@ -231,7 +231,7 @@ def test_decimation_respects_face_budget():
     assert report["decimated"] and report["faces_after"] == small_f.shape[0]
     assert 0.9 * budget <= small_f.shape[0] <= budget
     assert is_watertight(small_v, small_f)
-    radius = np.linalg.norm(small_v - CENTRE.numpy(), axis=1)
+    radius = np.linalg.norm(small_v - CENTER.numpy(), axis=1)
     assert np.abs(radius - RADIUS).max() < 0.02 * RADIUS
     # A budget above the face count leaves the mesh alone.
     _, same_f, report = clean_mesh(vertices, faces, target_faces=faces.shape[0] + 10)
@@ -244,7 +244,7 @@ def test_watertight_and_normals_helpers():
     assert not is_watertight(box.vertices, box.faces[1:])
     vertices, faces = extract_mesh(sphere_sdf, BOX_MIN, BOX_MAX, resolution=48, coarse_resolution=16)
     normals = vertex_normals(vertices, faces)
-    radial = (vertices - CENTRE.numpy()) / np.linalg.norm(vertices - CENTRE.numpy(), axis=1, keepdims=True)
+    radial = (vertices - CENTER.numpy()) / np.linalg.norm(vertices - CENTER.numpy(), axis=1, keepdims=True)
     assert normals.dtype == np.float32
     assert np.einsum("ij,ij->i", normals, radial).min() > 0.98
 

@@ -18,9 +18,9 @@ from igavatar.metrics.canonical import (
 )
 
 
-def _sphere(centre, radius, subdivisions=3) -> trimesh.Trimesh:
+def _sphere(center, radius, subdivisions=3) -> trimesh.Trimesh:
     mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    mesh.apply_translation(centre)
+    mesh.apply_translation(center)
     return mesh
 
 

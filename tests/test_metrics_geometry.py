@@ -97,7 +97,7 @@ def test_keep_largest_component_welds_duplicate_positions():
 
 
 def test_vertex_chamfer_concentric_spheres_closed_form():
-    r1, r2 = 0.50, 0.53  # metres; same subdivision -> vertices radially aligned
+    r1, r2 = 0.50, 0.53  # meters; same subdivision -> vertices radially aligned
     inner, outer = icosphere(r1, 3), icosphere(r2, 3)
     result = chamfer_l2_vertices_cm2(inner.vertices, outer.vertices)
     expected_cm2 = ((r2 - r1) * 100) ** 2  # 9 cm^2: the nearest vertex is the radial partner
@@ -127,7 +127,7 @@ def test_vertex_normal_consistency_identical_flipped_noisy():
     noisy = n + np.random.default_rng(0).normal(scale=0.3, size=n.shape)
     nc_noisy = normal_consistency_vertices(v, noisy, v, n)
     assert 0.0 < nc_noisy < 0.9
-    # Unnormalised input normals are normalised first: scaling changes nothing.
+    # Unnormalized input normals are normalized first: scaling changes nothing.
     assert normal_consistency_vertices(v, 7.0 * n, v, 0.2 * n) == pytest.approx(1.0, abs=1e-12)
 
 
@@ -173,7 +173,7 @@ def test_closest_points_on_mesh_matches_bruteforce(closest_points):
 
 
 def test_point_to_face_not_point_to_vertex():
-    # A point 1 cm above the centre of a 1 m triangle: face distance 1 cm, vertex distance ~0.58 m.
+    # A point 1 cm above the center of a 1 m triangle: face distance 1 cm, vertex distance ~0.58 m.
     vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0.5, np.sqrt(3) / 2, 0]])
     point = np.array([[0.5, np.sqrt(3) / 6, 0.01]])
     _, distance, face_index = closest_points_on_mesh(point, vertices, np.array([[0, 1, 2]]))

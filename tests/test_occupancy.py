@@ -15,11 +15,11 @@ RADIUS = 0.3
 RES = 16
 
 
-def sphere_density(centre: tuple[float, float, float], radius: float = RADIUS):
-    centre_t = torch.tensor(centre)
+def sphere_density(center: tuple[float, float, float], radius: float = RADIUS):
+    center_t = torch.tensor(center)
 
     def density(x: torch.Tensor) -> torch.Tensor:
-        sdf = torch.linalg.vector_norm(x - centre_t.to(x), dim=-1) - radius
+        sdf = torch.linalg.vector_norm(x - center_t.to(x), dim=-1) - radius
         return (0.5 + 0.5 * torch.sign(-sdf) * (1.0 - torch.exp(-sdf.abs() / BETA))) / BETA
 
     return density
@@ -33,8 +33,8 @@ def unit_grid(**kwargs) -> OccupancyGrid:
     return OccupancyGrid(-torch.ones(3), torch.ones(3), resolution=RES, **kwargs)
 
 
-def centre_distances(grid: OccupancyGrid, centre: tuple[float, float, float]) -> torch.Tensor:
-    return torch.linalg.vector_norm(grid.cell_centres() - torch.tensor(centre), dim=-1)
+def center_distances(grid: OccupancyGrid, center: tuple[float, float, float]) -> torch.Tensor:
+    return torch.linalg.vector_norm(grid.cell_centers() - torch.tensor(center), dim=-1)
 
 
 def test_starts_fully_occupied_and_outside_is_free() -> None:
@@ -65,16 +65,16 @@ def test_update_follows_the_released_rule() -> None:
 
 def test_sphere_cells_occupied_and_far_cells_free() -> None:
     grid = unit_grid()
-    centre = (0.1, -0.2, 0.0)
-    grid.update(sphere_density(centre), generator=torch.Generator().manual_seed(0))
-    dist = centre_distances(grid, centre)
+    center = (0.1, -0.2, 0.0)
+    grid.update(sphere_density(center), generator=torch.Generator().manual_seed(0))
+    dist = center_distances(grid, center)
     cell_diagonal = (2.0 / RES) * 3**0.5
     assert grid.occupied[dist < RADIUS].all()
     # Density 1/m is reached ~beta*ln(50) outside; pooling dilates by one cell; plus jitter.
     assert not grid.occupied[dist > RADIUS + 5 * BETA + 2 * cell_diagonal].any()
     assert 0.0 < grid.occupied_fraction < 0.5
     # Point queries agree with the cells.
-    assert grid.is_occupied(torch.tensor([centre])).item()
+    assert grid.is_occupied(torch.tensor([center])).item()
     assert not grid.is_occupied(torch.tensor([[0.9, 0.9, 0.9]])).item()
 
 
@@ -86,22 +86,22 @@ def test_decay_forgets_a_moved_sphere() -> None:
     before = grid.cached.clone()
     grid.update(zero_density, generator=gen)
     assert torch.allclose(grid.cached, 0.8 * before)
-    old_cells = centre_distances(grid, old) < RADIUS
+    old_cells = center_distances(grid, old) < RADIUS
     for _ in range(30):
         grid.update(sphere_density(new), generator=gen)
-    new_cells = centre_distances(grid, new) < RADIUS
+    new_cells = center_distances(grid, new) < RADIUS
     assert grid.occupied[new_cells].all()
     assert not grid.occupied[old_cells].any()  # 100 * 0.8^31 -> occupancy far below 0.01
 
 
 def test_moving_box_keeps_cached_density_in_place() -> None:
     grid = unit_grid()
-    centre = (0.2, 0.1, -0.1)
-    grid.update(sphere_density(centre), generator=torch.Generator().manual_seed(0))
+    center = (0.2, 0.1, -0.1)
+    grid.update(sphere_density(center), generator=torch.Generator().manual_seed(0))
     shift = torch.tensor([0.35, -0.2, 0.1])
     grid.update(zero_density, box_min=-torch.ones(3) + shift, box_max=torch.ones(3) + shift)
     assert torch.allclose(grid.box_min, -torch.ones(3) + shift)
-    dist = centre_distances(grid, centre)
+    dist = center_distances(grid, center)
     # The sphere's cells, now at other indices, are still occupied (resampled, decayed once).
     assert grid.occupied[dist < RADIUS - 2.0 / RES].all()
     assert not grid.occupied[dist > RADIUS + 5 * BETA + 3 * (2.0 / RES) * 3**0.5].any()
@@ -113,8 +113,8 @@ def test_rebuild_resets_the_cache() -> None:
     old, new = (-0.5, 0.0, 0.0), (0.4, 0.3, 0.0)
     grid.update(sphere_density(old), generator=gen)
     grid.rebuild(sphere_density(new), -torch.ones(3) * 0.9, torch.ones(3) * 0.9, num_passes=3, generator=gen)
-    assert grid.occupied[centre_distances(grid, new) < RADIUS].all()
-    assert not grid.occupied[centre_distances(grid, old) < RADIUS].any()
+    assert grid.occupied[center_distances(grid, new) < RADIUS].all()
+    assert not grid.occupied[center_distances(grid, old) < RADIUS].any()
 
 
 def test_chunked_evaluation_matches_single_chunk() -> None:

@@ -30,7 +30,7 @@ def _run(fused_on: bool, steps: int = 6) -> list[torch.Tensor]:
 def test_fused_adam_matches_the_reference_loop():
     reference, fused = _run(False), _run(True)
     start = torch.randn(5000, 2, generator=torch.Generator().manual_seed(0))
-    assert not torch.equal(reference[0], start), "the optimiser did not move the parameters"
+    assert not torch.equal(reference[0], start), "the optimizer did not move the parameters"
     for ref, fast in zip(reference, fused):
         torch.testing.assert_close(fast, ref, rtol=1e-5, atol=1e-7)
 

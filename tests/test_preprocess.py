@@ -58,7 +58,7 @@ def test_bone_transforms_and_grid_weights_reproduce_the_body_model(small_run):
     )
     posed = linear_blend_skinning(x_canonical, weights, torch.tensor(frames["bone_transforms"]))
     error = (posed - expected).norm(dim=-1)
-    # The grid blurs weights where limbs meet; most of the body is exact to a millimetre.
+    # The grid blurs weights where limbs meet; most of the body is exact to a millimeter.
     assert error.median() < 2e-3 and error.quantile(0.95) < 2e-2, (error.median(), error.quantile(0.95))
     boxes = torch.tensor(frames["posed_boxes"])
     assert torch.all(expected >= boxes[:, None, 0] - 1e-3) and torch.all(expected <= boxes[:, None, 1] + 1e-3)

@@ -69,9 +69,9 @@ def test_pixel_rays_reproject_to_their_pixels() -> None:
     pixels = torch.rand(50, 2, generator=gen, dtype=torch.float64) * torch.tensor([640.0, 480.0])
     origins, directions = pixel_rays(K, w2c, pixels)
     assert torch.allclose(torch.linalg.vector_norm(directions, dim=-1), torch.ones(50, dtype=torch.float64))
-    # All origins are the camera centre, which w2c maps to the camera origin.
-    centre_camera = w2c[:3, :3] @ origins[0] + w2c[:3, 3]
-    assert torch.allclose(centre_camera, torch.zeros(3, dtype=torch.float64), atol=1e-10)
+    # All origins are the camera center, which w2c maps to the camera origin.
+    center_camera = w2c[:3, :3] @ origins[0] + w2c[:3, 3]
+    assert torch.allclose(center_camera, torch.zeros(3, dtype=torch.float64), atol=1e-10)
     for t in (0.5, 3.0):
         x_world = origins + t * directions
         x_camera = x_world @ w2c[:3, :3].T + w2c[:3, 3]

@@ -179,7 +179,7 @@ def test_fused_forward_without_gradients_equals_reference(points, monkeypatch):
     assert calls
     torch.testing.assert_close(feature, feature_ref, rtol=1e-5, atol=1e-5)
     assert torch.equal(sdf, feature[:, 0])
-    # With gradients wanted (shape initialisation), forward stays on the differentiable reference.
+    # With gradients wanted (shape initialization), forward stays on the differentiable reference.
     calls.clear()
     sdf_grad, _ = field(points)
     assert sdf_grad.requires_grad and not calls

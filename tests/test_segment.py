@@ -43,7 +43,7 @@ def test_mesh_silhouette_fills_overlapping_triangles():
     vertices = np.array([[-0.3, -0.3, 0], [0.3, -0.3, 0], [0.3, 0.3, 0], [-0.3, 0.3, 0]], float)
     faces = np.array([[0, 1, 2], [0, 2, 3], [0, 1, 3]])
     silhouette = mesh_silhouette(vertices, faces, K, W2C, (SIZE, SIZE))
-    # 0.6 m at 3 m with f = 100 px spans 20 px: a 20 x 20 (+-1 px edge) square at the centre.
+    # 0.6 m at 3 m with f = 100 px spans 20 px: a 20 x 20 (+-1 px edge) square at the center.
     assert 19 * 19 <= silhouette.sum() <= 21 * 21
     assert silhouette[SIZE // 2, SIZE // 2] and silhouette[SIZE // 2 - 8, SIZE // 2 - 8]
     assert not silhouette[5, 5]

@@ -71,7 +71,7 @@ def test_dataset_has_a_capsule_prior_around_the_skeleton(skeleton_run, small_run
     # Capsules are a coarse body: most of Anny's template lies within 5 cm of them.
     distance, _ = cKDTree(prior.sample(100_000, seed=0)).query(np.asarray(template.vertices)[::20])
     assert np.median(distance) < 0.05, np.median(distance)
-    # Shape initialisation's targets from this mesh are the capsules' own signs (inside = negative).
+    # Shape initialization's targets from this mesh are the capsules' own signs (inside = negative).
     targets = template_sdf_samples(np.asarray(prior.vertices), np.asarray(prior.faces), subject["canonical_box"], n_points=4000)
     capsules = skeleton_capsules(subject["canonical_joints"], skeleton_of(subject), capsule_radii(skeleton_of(subject)))
     exact = capsules.sdf(targets.points)

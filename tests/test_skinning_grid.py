@@ -53,14 +53,14 @@ def _trilinear_reference(grid: torch.Tensor, box_min, box_max, point) -> torch.T
 def test_canonical_grid_box_cube_and_squeezed_depth():
     vertices = torch.tensor([[-0.3, -0.1, 0.0], [0.5, 0.2, 1.6], [0.1, 0.0, 0.4]])
     box_min, box_max = canonical_grid_box(vertices)
-    centre = torch.tensor([0.1, 0.05, 0.8])
+    center = torch.tensor([0.1, 0.05, 0.8])
     half = 0.8 * 1.2  # largest half-extent is along z (1.6 / 2)
-    torch.testing.assert_close(box_min, centre - half)
-    torch.testing.assert_close(box_max, centre + half)
+    torch.testing.assert_close(box_min, center - half)
+    torch.testing.assert_close(box_max, center + half)
 
     box_min, box_max = canonical_grid_box(vertices.numpy(), squeeze_axis=1, squeeze=4.0)
     torch.testing.assert_close((box_max - box_min) / 2, torch.tensor([half, half / 4, half]))
-    torch.testing.assert_close((box_max + box_min) / 2, centre)
+    torch.testing.assert_close((box_max + box_min) / 2, center)
 
 
 def test_canonical_grid_box_rejects_bad_input():

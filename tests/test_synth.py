@@ -271,7 +271,7 @@ def test_static_camera_frames_points_level_and_from_the_front():
     K, w2c = frame_static_camera(points, 120, 100, distance=3.0, margin=0.1)
     x_pixels, z = project_points(K, w2c, points)
     assert np.all(z > 2.0) and np.all(z < 4.0)
-    # Principal point at the image centre ((W - 1) / 2, (H - 1) / 2); 10% free border on each side,
+    # Principal point at the image center ((W - 1) / 2, (H - 1) / 2); 10% free border on each side,
     # reached on at least one side.
     low, high = np.array([49.5 - 40.0, 59.5 - 48.0]), np.array([49.5 + 40.0, 59.5 + 48.0])
     assert np.all(x_pixels >= low - 1e-9) and np.all(x_pixels <= high + 1e-9)

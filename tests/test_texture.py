@@ -39,7 +39,7 @@ def test_atlas_keeps_the_faces_and_fits_the_square(sphere_bake):
     assert 0.3 < covered.mean() < 1.0  # charts cover a good part of the texture, not all of it
 
 
-def test_rasterized_barycentrics_reproduce_the_texel_centres(sphere_bake):
+def test_rasterized_barycentrics_reproduce_the_texel_centers(sphere_bake):
     _, atlas, _, _, _ = sphere_bake
     face, bary = rasterize_uv(atlas.uv, atlas.faces, SIZE)
     rows, cols = np.nonzero(face >= 0)

@@ -1,4 +1,4 @@
-"""Training end to end with the tiny preset: artifact, determinism, exact resume, what is optimised."""
+"""Training end to end with the tiny preset: artifact, determinism, exact resume, what is optimized."""
 
 from __future__ import annotations
 
@@ -75,11 +75,11 @@ def test_resume_continues_exactly(small_run, tmp_path):
         assert np.array_equal(got[key], value), key
 
 
-def test_every_learned_part_is_optimised_including_non_rigid(small_run):
+def test_every_learned_part_is_optimized_including_non_rigid(small_run):
     trainer = _trainer(small_run / "dataset", steps=4, nonrigid_start_fraction=0.0)
-    optimised = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
-    names = {n for n, p in trainer.avatar.named_parameters() if id(p) not in optimised}
-    assert not names, f"parameters missing from the optimiser: {names}"
+    optimized = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
+    names = {n for n, p in trainer.avatar.named_parameters() if id(p) not in optimized}
+    assert not names, f"parameters missing from the optimizer: {names}"
     before = {n: p.detach().clone() for n, p in trainer.avatar.named_parameters() if n.startswith("nonrigid.")}
     for _ in range(3):
         trainer.train_step()
@@ -224,7 +224,7 @@ def test_a_step_without_valid_samples_is_counted_not_stepped(small_run):
 
 
 def test_shape_init_artifact_holds_the_initial_fit_and_a_rerun_matches_a_fresh_run(small_run, tmp_path):
-    """The saved shape initialisation is the fit before training, so a second run into the same
+    """The saved shape initialization is the fit before training, so a second run into the same
     --out (which reuses it as a cache) starts where a fresh run starts and ends where it ends."""
     from stages.train import TrainOptions, run_train
 

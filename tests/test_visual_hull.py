@@ -21,7 +21,7 @@ from igavatar.training.data import TrainingData
 from igavatar.training.optim import adam
 from igavatar.training.visual_hull import canonical_visual_hull, free_space_loss
 
-CENTRES = torch.tensor([[-0.25, 0.0, 0.0], [0.25, 0.0, 0.0]])
+CENTERS = torch.tensor([[-0.25, 0.0, 0.0], [0.25, 0.0, 0.0]])
 RADIUS = 0.15
 BOX = torch.tensor([[-0.6, -0.3, -0.4], [0.6, 0.3, 0.4]])
 UP, FRONT = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, -1.0, 0.0])
@@ -29,7 +29,7 @@ UP, FRONT = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, -1.0, 0.0])
 
 def true_sdf(x: torch.Tensor) -> torch.Tensor:
     """Union of the two spheres: (P, 3) -> (P,)."""
-    return ((x[:, None, :] - CENTRES[None]).norm(dim=-1) - RADIUS).amin(dim=1)
+    return ((x[:, None, :] - CENTERS[None]).norm(dim=-1) - RADIUS).amin(dim=1)
 
 
 def webbed_sdf(x: torch.Tensor) -> torch.Tensor:
@@ -49,10 +49,10 @@ def sphere_masks(K: torch.Tensor, w2c: torch.Tensor, size: int) -> torch.Tensor:
         directions = directions / directions.norm(dim=-1, keepdim=True)
         origin = c2w[:3, 3]
         hit = torch.zeros(pixels.shape[0], dtype=torch.bool)
-        for centre in CENTRES.double():
-            to_centre = centre - origin
-            along = directions @ to_centre
-            closest = (to_centre.square().sum() - along.square()).clamp_min(0).sqrt()
+        for center in CENTERS.double():
+            to_center = center - origin
+            along = directions @ to_center
+            closest = (to_center.square().sum() - along.square()).clamp_min(0).sqrt()
             hit |= (closest <= RADIUS) & (along > 0)
         masks.append(hit.reshape(size, size))
     return torch.stack(masks)
@@ -78,7 +78,7 @@ def test_hull_keeps_the_shape_rules_out_the_gap_and_lower_bounds_the_sdf():
     deformer, data = scene()
     hull = canonical_visual_hull(deformer, data, BOX, cell_size=0.02, mask_dilation_px=1)
     rng = torch.Generator().manual_seed(0)
-    inside = CENTRES.repeat_interleave(200, 0) + (torch.rand(400, 3, generator=rng) - 0.5) * RADIUS
+    inside = CENTERS.repeat_interleave(200, 0) + (torch.rand(400, 3, generator=rng) - 0.5) * RADIUS
     inside = inside[true_sdf(inside) < -0.02]
     assert (hull.free_distance(inside) == 0).all(), "the hull carves the subject itself"
     gap = torch.tensor([[0.0, 0.0, z] for z in np.linspace(-0.06, 0.06, 7)], dtype=torch.float32)
@@ -120,7 +120,7 @@ def test_free_space_hinge_carves_a_web_and_leaves_the_shape():
         optimizer.step()
     with torch.no_grad():
         assert (field(web)[0] > 0).all(), "the web was not carved"
-        assert (field(CENTRES)[0] < -0.05).all(), "carving removed the spheres"
+        assert (field(CENTERS)[0] < -0.05).all(), "carving removed the spheres"
 
 
 def test_free_space_loss_is_a_one_sided_hinge():

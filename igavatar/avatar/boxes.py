@@ -2,7 +2,7 @@
 
     boxes = posed_boxes(model, bone_transforms, posed_joints)     # (N, 2, 3)
 
-The centres of the canonical occupied cells are forward-skinned into each frame; because LBS of a
+The centers of the canonical occupied cells are forward-skinned into each frame; because LBS of a
 bounded canonical set stays bounded, any pose, however far from the training poses, gets a box
 the size of the body, and no frame reuses another's empty-space skipping.
 """
@@ -15,14 +15,14 @@ import torch
 
 from igavatar.avatar.model import ModelArtifact
 
-#: Extra padding (metres) of a posed box beyond the skinned canonical cells and the offset bound.
+#: Extra padding (meters) of a posed box beyond the skinned canonical cells and the offset bound.
 BOX_PADDING_M = 0.03
-#: Padding (metres) around the posed joints when the canonical grid has no occupied cell.
+#: Padding (meters) around the posed joints when the canonical grid has no occupied cell.
 JOINT_BOX_PADDING_M = 0.3
 
 
-def canonical_cell_centres(model: ModelArtifact) -> torch.Tensor:
-    """(C, 3) canonical centres of the occupied cells of the model's canonical occupancy grid."""
+def canonical_cell_centers(model: ModelArtifact) -> torch.Tensor:
+    """(C, 3) canonical centers of the occupied cells of the model's canonical occupancy grid."""
     grid = model.canonical_grid
     iz, iy, ix = torch.nonzero(grid.occupied, as_tuple=True)
     return grid.box_min + (torch.stack((ix, iy, iz), dim=-1).to(grid.box_min.dtype) + 0.5) * grid.cell_size()
@@ -30,13 +30,13 @@ def canonical_cell_centres(model: ModelArtifact) -> torch.Tensor:
 
 @torch.no_grad()
 def skinned_cells(model: ModelArtifact, bone_transforms: torch.Tensor, max_points: int | None = None) -> torch.Tensor:
-    """Occupied canonical cell centres pushed through forward LBS: (N, C, 3) posed world points.
+    """Occupied canonical cell centers pushed through forward LBS: (N, C, 3) posed world points.
 
     Args:
         bone_transforms: (N, J, 4, 4) canonical -> posed world.
         max_points: keep every k-th cell so that C <= max_points (for framing); None keeps all.
     """
-    x_canonical = canonical_cell_centres(model)
+    x_canonical = canonical_cell_centers(model)
     if max_points is not None and x_canonical.shape[0] > max_points:
         x_canonical = x_canonical[:: -(-x_canonical.shape[0] // max_points)]
     deformer = model.avatar.deformer
@@ -50,8 +50,8 @@ def skinned_cells(model: ModelArtifact, bone_transforms: torch.Tensor, max_point
 def posed_boxes(model: ModelArtifact, bone_transforms: torch.Tensor, posed_joints: torch.Tensor) -> torch.Tensor:
     """World boxes (N, 2, 3) that bound the posed avatar in each frame.
 
-    The box of the skinned cell centres is padded by half a cell diagonal (a cell's content
-    around its centre), the non-rigid offset bound when the offset is on (the surface moves at
+    The box of the skinned cell centers is padded by half a cell diagonal (a cell's content
+    around its center), the non-rigid offset bound when the offset is on (the surface moves at
     most that far from its rigid correspondence) and BOX_PADDING_M. Without occupied cells the
     posed joints padded by JOINT_BOX_PADDING_M are used.
 

@@ -78,7 +78,7 @@ def canonical_section(
         if all(part in index for part in ("left_thigh", "right_thigh", "left_shin", "right_shin")):
             gap = leg_gap_points(subject.canonical_joints.astype(np.float64), index)
     section = canonical_shape_report(pred, (template_v, template_f), labels, gap, truth, n_iou=n_iou, seed=seed)
-    section["frame"] = "canonical (the avatar's rest space, metres in, units as in the posed metrics)"
+    section["frame"] = "canonical (the avatar's rest space, meters in, units as in the posed metrics)"
     section["truth"] = "ground_truth/clothed_rest.npz of the capture, posed into the canonical pose" if truth else "not available"
     rows = [("prediction", pred[0], pred[1])]
     if truth is not None:

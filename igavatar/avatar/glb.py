@@ -37,7 +37,7 @@ def write_model_glb(
         vertices: (V, 3) canonical; faces: (F, 3); colors: (V, 3) uint8 sRGB.
         skin_weights: (V, J) full weights (the writer keeps the top `influences`).
         motion: optional (local_rotations (N, J, 3, 3) relative to the rest pose, root_translation
-            (N, 3) in world metres, fps).
+            (N, 3) in world meters, fps).
         texture: optional (uv (V, 2), PNG bytes) for a textured primitive.
     Returns:
         {"joints", "influences", "animation_frames", "fps", "up_axis", "world_to_gltf"}.

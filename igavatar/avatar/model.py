@@ -48,7 +48,7 @@ class ModelManifest:
 
     @property
     def canonical_box(self) -> list[list[float]]:
-        """(2, 3) canonical box, metres."""
+        """(2, 3) canonical box, meters."""
         return self.manifest["data"]["canonical_box"]
 
     @property

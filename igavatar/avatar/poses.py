@@ -41,7 +41,7 @@ class PoseSequence:
     Attributes:
         name: the motion's name or the source's file name; source: "procedural" or the path read.
         frame_names: N names (a pose file's or dataset's frame names, else 0000, 0001, ...).
-        local_rotations: (N, J, 3, 3) relative to the rest pose; root_translation: (N, 3) metres.
+        local_rotations: (N, J, 3, 3) relative to the rest pose; root_translation: (N, 3) meters.
         bone_transforms: (N, J, 4, 4) canonical -> posed world; pose_condition: (N, pose_dim);
         posed_joints: (N, J, 3) world joints.
         fps: playback rate; in_place: whether the motion stays over one spot.

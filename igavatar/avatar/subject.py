@@ -21,7 +21,7 @@ _KEYS = ("parents", "rest_joints", "canonical_joints", "canonical_rotations", "j
 
 @dataclass(frozen=True, eq=False)
 class SubjectArrays:
-    """The arrays of subject.npz (J joints, a (D, H, W) skinning grid, lengths in metres).
+    """The arrays of subject.npz (J joints, a (D, H, W) skinning grid, lengths in meters).
 
     Attributes:
         parents: (J,) int64, -1 at the root; rest_joints: (J, 3) rest-pose joints;

@@ -38,11 +38,11 @@ def _closed_sdf(avatar: Avatar) -> Callable[[torch.Tensor], torch.Tensor]:
     surface that reaches the box is capped there instead of left open.
     """
     box = avatar.canonical_box
-    centre, half = (box[0] + box[1]) / 2, (box[1] - box[0]) / 2
+    center, half = (box[0] + box[1]) / 2, (box[1] - box[0]) / 2
 
     def sdf_fn(x_canonical: torch.Tensor) -> torch.Tensor:
         sdf = avatar.sdf_field(x_canonical)[0].reshape(-1)
-        q = (x_canonical - centre).abs() - half
+        q = (x_canonical - center).abs() - half
         box_sdf = q.clamp_min(0).norm(dim=-1) + q.amax(dim=-1).clamp_max(0)
         return torch.maximum(sdf, box_sdf)
 

@@ -52,7 +52,7 @@ ANNY_PHENOTYPE_DEFAULTS: Mapping[str, float] = MappingProxyType(
 
 ANNY_PHENOTYPE_LABELS: tuple[str, ...] = tuple(ANNY_PHENOTYPE_DEFAULTS)
 
-# Per-bone translations below this (metres) count as zero: files written in float32 carry noise.
+# Per-bone translations below this (meters) count as zero: files written in float32 carry noise.
 _TRANSLATION_TOLERANCE = 1e-5
 # Rotation blocks further than this from orthonormal (max |D^T D - I|) are not rotations.
 _ORTHONORMAL_TOLERANCE = 1e-3
@@ -157,7 +157,7 @@ class AnnyBody:
 
     Attributes (CPU tensors):
         phenotype: the full phenotype (label -> value in [0, 1]).
-        rest_vertices: (V, 3) float32 rest (A-pose, identity-rotation) vertices in metres.
+        rest_vertices: (V, 3) float32 rest (A-pose, identity-rotation) vertices in meters.
         faces: (F, 3) int64 triangles (Anny's quads split).
         skinning_weights: (V, J) float32 dense weights, rows sum to 1.
         skeleton: Skeleton with Anny's bone parents, rest bone heads and bone labels (J = 104).

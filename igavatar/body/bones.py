@@ -19,7 +19,7 @@ import numpy as np
 from igavatar.body.motions import semantic_joint_map
 from igavatar.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton
 
-#: Length (metres, adult scale) of the segment beyond each leaf joint of the SMPL tree: the
+#: Length (meters, adult scale) of the segment beyond each leaf joint of the SMPL tree: the
 #: head joint sits at the skull base (the crown is ~0.2 m higher), the hand joint at the knuckles,
 #: the foot joint at the ball of the foot.
 SMPL_LEAF_LENGTHS_M: dict[str, float] = {
@@ -27,7 +27,7 @@ SMPL_LEAF_LENGTHS_M: dict[str, float] = {
 }
 #: Leaf segments of skeletons of unknown kind are this fraction of the parent bone.
 LEAF_LENGTH_FRACTION = 0.5
-#: Nominal thigh + shin length (m) of the adult the metre tables above are written for.
+#: Nominal thigh + shin length (m) of the adult the meter tables above are written for.
 NOMINAL_LEG_LENGTH_M = 0.82
 
 
@@ -107,7 +107,7 @@ def children_of(parents: np.ndarray) -> list[list[int]]:
 
 
 def leg_scale(skeleton: Skeleton, kind: str | None) -> float:
-    """Size of the subject relative to the adult the metre tables are written for, from the
+    """Size of the subject relative to the adult the meter tables are written for, from the
     rest thigh + shin lengths (1 for an unknown kind), clamped to [0.5, 1.5]."""
     if kind is None:
         return 1.0
@@ -120,7 +120,7 @@ def leg_scale(skeleton: Skeleton, kind: str | None) -> float:
 
 
 def leaf_lengths(skeleton: Skeleton, kind: str | None) -> np.ndarray:
-    """(J,) length in metres of each leaf joint's extension segment (0 for inner joints).
+    """(J,) length in meters of each leaf joint's extension segment (0 for inner joints).
 
     SMPL's leaves use SMPL_LEAF_LENGTHS_M scaled by leg_scale; other skeletons
     LEAF_LENGTH_FRACTION of the parent bone in the rest pose.

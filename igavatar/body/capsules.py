@@ -49,7 +49,7 @@ def _generic_radii(skeleton: Skeleton) -> np.ndarray:
 
 
 def capsule_radii(skeleton: Skeleton) -> np.ndarray:
-    """(J,) capsule radius in metres of each joint's segments (see the module docstring)."""
+    """(J,) capsule radius in meters of each joint's segments (see the module docstring)."""
     kind = skeleton_kind(skeleton)
     if kind is None:
         return _generic_radii(skeleton)
@@ -79,7 +79,7 @@ class Capsules:
     Attributes:
         joint: (B,) int64, the joint whose transform moves capsule b.
         start, end: (B, 3) segment ends.
-        radius: (B,) metres.
+        radius: (B,) meters.
     """
 
     joint: torch.Tensor
@@ -102,7 +102,7 @@ def skeleton_capsules(joints: torch.Tensor | np.ndarray, skeleton: Skeleton, rad
     Args:
         joints: (J, 3) joint positions (e.g. canonical).
         skeleton: the tree.
-        radii: (J,) capsule radius of each joint's segments (from capsule_radii), metres.
+        radii: (J,) capsule radius of each joint's segments (from capsule_radii), meters.
     Returns:
         Capsules, one per bone segment (a one-joint skeleton: a sphere about its root).
     """
@@ -147,7 +147,7 @@ def capsule_mesh(capsules: Capsules, voxel_m: float = 0.01) -> tuple[np.ndarray,
 
     Args:
         capsules: from skeleton_capsules.
-        voxel_m: edge of the marching-cubes voxels (metres).
+        voxel_m: edge of the marching-cubes voxels (meters).
     Returns:
         vertices (V, 3) float32 and faces (F, 3) int64: a closed surface (the box leaves a margin
         around every capsule), normals pointing outwards.
@@ -188,7 +188,7 @@ def capsule_prior(
         skeleton: the tree (radii from capsule_radii).
         canonical_joints: (J, 3) joint positions in the canonical pose.
         bone_transforms: (N, J, 4, 4) canonical -> posed world.
-        voxel_m: marching-cubes voxel edge in metres.
+        voxel_m: marching-cubes voxel edge in meters.
     """
     capsules = skeleton_capsules(canonical_joints, skeleton, capsule_radii(skeleton))
     vertices, faces = capsule_mesh(capsules, voxel_m)

@@ -11,7 +11,7 @@ rotation becomes a world-aligned local rotation by conjugation with the body-to-
 Rest poses differ (Anny: A-pose, SMPL: T-pose), so arm angles are absolute (angle of the upper arm
 from straight down), measured against the skeleton's rest arms; every motion starts from the
 "neutral" stance: the rest pose, except that arms raised above NEUTRAL_ARM_ABDUCTION (a T-pose) are
-lowered to it. Anny's neutral stance is its rest pose. Angles in radians, lengths in metres.
+lowered to it. Anny's neutral stance is its rest pose. Angles in radians, lengths in meters.
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ class SourcePoses:
         pose_parameters: (N, 104, 4, 4) Anny deltas (anny), else None.
         phenotype: the Anny phenotype stored with the poses (label -> value), or None.
         rotvecs: (N, J, 3) local axis-angle rotations relative to the rest pose (smpl, skeleton).
-        transl: (N, 3) root translation in metres (smpl, skeleton).
+        transl: (N, 3) root translation in meters (smpl, skeleton).
         parents: (J,) parent indices (smpl: SMPL_PARENTS; skeleton: the file's), else None.
         rest_joints: (J, 3) rest joint positions of a bare-skeleton file, else None.
         joint_names: J names when the file has them, else None.

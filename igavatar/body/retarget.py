@@ -20,7 +20,7 @@ named part:
    follow the source's exactly.
 3. Target joints that no part names (Anny's twist bones, fingers, toes, ...) keep their rest
    rotation relative to their parent; named joints get local = G_parent^T G_joint.
-4. The root translation is the source's, in metres, turned into the target's world axes: the root
+4. The root translation is the source's, in meters, turned into the target's world axes: the root
    makes the same displacements (its absolute position is the target's rest root plus it).
 
 Pose files do not say which way their world is up (AIST++ is +Y up like SMPL, AMASS +Z up,
@@ -126,7 +126,7 @@ def retarget_rotations(
 
     Args:
         source_rotations: (N, Js, 3, 3) local rotations relative to the source's rest pose.
-        source_translation: (N, 3) source root translation (metres, source world axes).
+        source_translation: (N, 3) source root translation (meters, source world axes).
         source, target: the two skeletons (rest joints and names; the kinds' joint names).
         source_kind, target_kind: skeleton kinds of igavatar.body.motions ('smpl', 'anny').
     Returns:

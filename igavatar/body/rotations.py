@@ -62,7 +62,7 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
 
 
 def quaternion_to_matrix(quaternion: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of quaternions (w, x, y, z), normalised first.
+    """Rotation matrices of quaternions (w, x, y, z), normalized first.
 
     Args:
         quaternion: (..., 4), any non-zero norm.

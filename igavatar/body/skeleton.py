@@ -72,7 +72,7 @@ class Skeleton:
 
     Attributes:
         parents: (J,) int64, parents[0] = -1 (the root), parents[j] < j otherwise.
-        rest_joints: (J, 3) float64 joint positions in metres in the rest pose (world axes).
+        rest_joints: (J, 3) float64 joint positions in meters in the rest pose (world axes).
         joint_names: J distinct names.
     Arrays are copied and made read-only, so a Skeleton is an immutable value.
     """
@@ -180,7 +180,7 @@ def forward_kinematics(
     Args:
         local_rotations: (..., J, 3, 3) rotation of each joint relative to the rest pose, in the
             parent's world-aligned rest frame (SMPL convention); identity everywhere = rest pose.
-        rest_joints: (J, 3) rest joint positions in metres (tensor or array).
+        rest_joints: (J, 3) rest joint positions in meters (tensor or array).
         parents: (J,) parent indices, -1 for the root at index 0, parents before children.
         root_translation: (..., 3) world translation added to the root, or None for zero.
     Returns:
@@ -281,7 +281,7 @@ SMPL_PARENTS: tuple[int, ...] = (
 )
 """SMPL's standard kinematic tree (parent of each joint in SMPL_JOINT_NAMES order)."""
 
-#: A plausible neutral SMPL T-pose (metres; +Y up, the face towards +Z, the subject's left at +X),
+#: A plausible neutral SMPL T-pose (meters; +Y up, the face towards +Z, the subject's left at +X),
 #: typed by hand, not taken from the licensed model (retargeting uses only its bone directions).
 NOMINAL_SMPL_REST_JOINTS = np.array([
     [0.000, -0.240, 0.030], [0.060, -0.330, 0.015], [-0.060, -0.330, 0.015], [0.000, -0.115, -0.005],

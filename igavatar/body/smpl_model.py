@@ -99,7 +99,7 @@ class SmplModel:
     Attributes:
         path: the file it was read from.
         gender: 'neutral', 'male' or 'female' when the file or its name says so, else None.
-        v_template: (V, 3) mean template in the T-pose, metres, +Y up, facing +Z.
+        v_template: (V, 3) mean template in the T-pose, meters, +Y up, facing +Z.
         shapedirs: (V, 3, B) shape blend shapes.
         posedirs: (207, V * 3) pose blend shapes (smplx's layout: pose feature @ posedirs).
         joint_regressor: (24, V) rest joints = joint_regressor @ shaped vertices.

@@ -222,7 +222,7 @@ def read_capture_v1(root: Path) -> CaptureV1:
     if not_rigid.any():
         raise InputError(
             f"{cam_path}: key 'w2c' rotation block is not orthonormal (scale or shear: not a rigid camera)"
-            f"{_at_frame(frames, not_rigid)}; w2c must be a rotation and a translation in metres"
+            f"{_at_frame(frames, not_rigid)}; w2c must be a rotation and a translation in meters"
         )
     height, width = int(np.asarray(cams["height"]).reshape(-1)[0]), int(np.asarray(cams["width"]).reshape(-1)[0])
     if height < 1 or width < 1:

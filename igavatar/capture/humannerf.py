@@ -44,7 +44,7 @@ from igavatar.errors import InputError
 CAMERAS, MESH_INFOS, CANONICAL_JOINTS = "cameras.pkl", "mesh_infos.pkl", "canonical_joints.pkl"
 TEST_FRACTION = 0.2
 #: Largest allowed distance (m) between igavatar's posed joints and mesh_infos' world joints:
-#: the per-frame shapes differ a little from the mean one; a wrong convention is off by decimetres.
+#: the per-frame shapes differ a little from the mean one; a wrong convention is off by decimeters.
 JOINT_TOLERANCE_M = 0.03
 _NUM_JOINTS = len(SMPL_PARENTS)
 _FRAME_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")

@@ -21,9 +21,9 @@ def resize_plan(height: int, width: int, max_size: int) -> tuple[tuple[float, fl
 
 
 def scale_intrinsics(K: np.ndarray, scale_xy: tuple[float, float]) -> np.ndarray:
-    """Intrinsics (..., 3, 3) after resizing by (sx, sy), pixel centres at integer coordinates.
+    """Intrinsics (..., 3, 3) after resizing by (sx, sy), pixel centers at integer coordinates.
 
-    A pixel centre x maps to sx * (x + 0.5) - 0.5, hence the half-pixel terms on the principal point.
+    A pixel center x maps to sx * (x + 0.5) - 0.5, hence the half-pixel terms on the principal point.
     """
     sx, sy = scale_xy
     K = np.array(K, dtype=np.float64, copy=True)

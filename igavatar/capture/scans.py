@@ -106,7 +106,7 @@ def _layout_scans(gt_dir: Path) -> dict[str, Path] | None:
 
 
 def load_scan(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) float64 metres and faces (F, 3) int64 of a PLY/OBJ scan or an X-Humans mesh
+    """Vertices (V, 3) float64 meters and faces (F, 3) int64 of a PLY/OBJ scan or an X-Humans mesh
     pickle; InputError if unusable."""
     if Path(path).suffix.lower() == ".pkl":
         return read_xhumans_scan(Path(path))

@@ -11,7 +11,7 @@ The posed body model says roughly where the subject is; the image says exactly. 
     sure background    everything farther away
 GrabCut then fits color models to both sides and cuts along image edges (OpenCV's iterated graph
 cut, Rother et al. 2004); of its foreground, only the parts connected to the sure subject are
-kept. Distances in metres become pixels at the body's depth in that camera.
+kept. Distances in meters become pixels at the body's depth in that camera.
 """
 
 from __future__ import annotations
@@ -61,13 +61,13 @@ def _camera_points(K: np.ndarray, w2c: np.ndarray, x_world: np.ndarray) -> tuple
     return uv, depth
 
 
-def metres_to_pixels(K: np.ndarray, w2c: np.ndarray, x_world: np.ndarray, metres: float) -> float:
-    """How many pixels `metres` spans at the median depth of the points `x_world` (P, 3)."""
+def meters_to_pixels(K: np.ndarray, w2c: np.ndarray, x_world: np.ndarray, meters: float) -> float:
+    """How many pixels `meters` spans at the median depth of the points `x_world` (P, 3)."""
     _, depth = _camera_points(K, w2c, x_world)
     in_front = depth[depth > 1e-6]
     if in_front.size == 0:
         return 0.0
-    return float(metres * 0.5 * (K[0, 0] + K[1, 1]) / np.median(in_front))
+    return float(meters * 0.5 * (K[0, 0] + K[1, 1]) / np.median(in_front))
 
 
 def mesh_silhouette(
@@ -179,7 +179,7 @@ def estimate_mask(
     if body.vertices is not None and body.faces is not None:
         points = np.asarray(body.vertices, np.float64)
         probable = mesh_silhouette(points, body.faces, K, w2c, size_hw)
-        sure_px = int(round(metres_to_pixels(K, w2c, points, SURE_INSIDE_M)))
+        sure_px = int(round(meters_to_pixels(K, w2c, points, SURE_INSIDE_M)))
         sure = cv2.erode(probable.astype(np.uint8), _disk(sure_px)) > 0 if sure_px > 0 else probable
     elif body.joints is not None and body.parents is not None:
         points = np.asarray(body.joints, np.float64)
@@ -187,5 +187,5 @@ def estimate_mask(
         sure = skeleton_silhouette(points, body.parents, K, w2c, size_hw, CAPSULE_CORE_M)
     else:
         raise InputError("segmentation: the posed body has neither a template mesh nor a skeleton to seed GrabCut")
-    band_px = int(round(metres_to_pixels(K, w2c, points, band_m)))
+    band_px = int(round(meters_to_pixels(K, w2c, points, band_m)))
     return grabcut_mask(rgb, seed_labels(probable, sure, band_px), iterations)

@@ -64,7 +64,7 @@ def grid_points(box_min: torch.Tensor, box_max: torch.Tensor, cell_size: float) 
 
 
 def grid_spacing(box_min: torch.Tensor, box_max: torch.Tensor, shape: tuple[int, int, int]) -> list[float]:
-    """Metres between neighbouring points along (D, H, W) = (z, y, x) of a `grid_points` grid."""
+    """Meters between neighbouring points along (D, H, W) = (z, y, x) of a `grid_points` grid."""
     return [float(box_max[axis] - box_min[axis]) / (shape[2 - axis] - 1) for axis in (2, 1, 0)]
 
 
@@ -89,7 +89,7 @@ def volume_ratio(x_world: torch.Tensor, shape: tuple[int, int, int], spacing: li
 
     Args:
         x_world: (D*H*W, 3) where the grid's points land.
-        shape: (D, H, W) of the grid; spacing: metres along (D, H, W) as `grid_spacing`.
+        shape: (D, H, W) of the grid; spacing: meters along (D, H, W) as `grid_spacing`.
     Returns:
         (D*H*W,) posed volume / canonical volume (1 for a rigid motion, ~0 where space is crushed).
     """
@@ -166,7 +166,7 @@ class HullPrior:
     Attributes:
         vertices: (V, 3) float32 canonical vertices.
         faces: (F, 3) int64, normals outwards.
-        cell_size: metres between the grid's points.
+        cell_size: meters between the grid's points.
         views: how many views voted.
         touches_box: the kept region reaches the search box's side (the box may cut the subject).
     """
@@ -204,7 +204,7 @@ def hull_prior_mesh(
     Args:
         box: (2, 3) canonical search box (generous: the subject must lie inside).
         skin, views, mask_dilation_px, min_outside_fraction: as `vote_masks` / `free_points`.
-        cell_size: grid spacing in metres.
+        cell_size: grid spacing in meters.
         min_seen_fraction: of the views, how many must see a point for it to count.
         min_volume_ratio, max_collapsed_fraction: the crushed-space rule above.
     """
@@ -260,10 +260,10 @@ def search_box(joints_canonical: torch.Tensor, margin_m: float = 0.35, min_half_
     """(2, 3) canonical box in which to look for a subject known only by its joints.
 
     The joints' box grown by `margin_m` (crown, hands and feet lie beyond their joints), and at
-    least `min_half_m` either side of the joints' centre on every axis, so that a skeleton of one
+    least `min_half_m` either side of the joints' center on every axis, so that a skeleton of one
     joint (a static subject) still gets room for a whole standing person.
     """
     joints = torch.as_tensor(joints_canonical).float()
     lo, hi = joints.amin(0) - margin_m, joints.amax(0) + margin_m
-    centre = (joints.amin(0) + joints.amax(0)) / 2
-    return torch.stack((torch.minimum(lo, centre - min_half_m), torch.maximum(hi, centre + min_half_m)))
+    center = (joints.amin(0) + joints.amax(0)) / 2
+    return torch.stack((torch.minimum(lo, center - min_half_m), torch.maximum(hi, center + min_half_m)))

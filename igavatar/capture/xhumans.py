@@ -77,7 +77,7 @@ def _params_of(path: Path) -> dict[str, np.ndarray]:
 
 
 def read_xhumans_scan(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) float64 metres and faces (F, 3) int64 of an X-Humans meshes_pkl/mesh-f*.pkl."""
+    """Vertices (V, 3) float64 meters and faces (F, 3) int64 of an X-Humans meshes_pkl/mesh-f*.pkl."""
     mesh = load_array_pickle(path)
     if not isinstance(mesh, dict):
         raise InputError(f"{path}: holds a {type(mesh).__name__}, expected a dict with vertices and faces (a scan)")

@@ -7,10 +7,10 @@ Two passes, as in the paper's code: a coarse pass over the whole box finds the t
 surface; the fine pass samples the tight box with cubic voxels, the finest axis getting
 `resolution` samples. The fine pass is narrow-band: the fine grid is cut into blocks of
 `block_size` cells per edge (neighbours share their boundary samples, so every cell lies inside a
-block). A block is evaluated only if the SDF at its centre is within `band` x its half-diagonal of
+block). A block is evaluated only if the SDF at its center is within `band` x its half-diagonal of
 the level (candidates screened first with the trilinearly upsampled coarse pass); any other block
 holds no surface if the field is a distance (1-Lipschitz), so it is filled with a large value of
-its centre's sign. Marching cubes then sees the same sign changes as on the dense grid, and the
+its center's sign. Marching cubes then sees the same sign changes as on the dense grid, and the
 mesh is the same (tested). The test assumes |grad sdf| <= ~1; raise `band` for fields far from a
 distance (a band of 2 tolerates gradients up to 2).
 
@@ -42,7 +42,7 @@ def _cubic_grid(
 
     Returns origin (3,) float64 (the world position of sample [0, 0, 0]), the spacing, and the
     sample counts (3,) int64. Shorter axes get just enough samples to cover their extent and are
-    centred on the box, so they overhang it by less than half a voxel on each side.
+    centerd on the box, so they overhang it by less than half a voxel on each side.
     """
     extent = box_max - box_min
     spacing = float(extent.max()) / (resolution - 1)
@@ -156,28 +156,28 @@ def _narrow_band(
     """The fine volume pre-filled with level +- far_value, and the flat indices (K,) to evaluate.
 
     Block b covers samples [b B, (b+1) B] on each axis (one sample of overlap, so every cell of the
-    grid lies inside some block). A block whose centre is farther from the surface than `band` x
-    its half-diagonal holds no surface for a distance field; it keeps one sign, that of its centre.
+    grid lies inside some block). A block whose center is farther from the surface than `band` x
+    its half-diagonal holds no surface for a distance field; it keeps one sign, that of its center.
     Candidates are first screened with the upsampled coarse SDF (whose error is at most one coarse
-    cell diagonal for a 1-Lipschitz field), then decided by the SDF at their centres.
+    cell diagonal for a 1-Lipschitz field), then decided by the SDF at their centers.
     """
     num_blocks = -(-counts_f // block_size)
     blocks = np.stack(np.meshgrid(*(np.arange(n) for n in num_blocks), indexing="ij"), -1).reshape(-1, 3)
-    centres = origin_f + (blocks + 0.5) * block_size * spacing_f
+    centers = origin_f + (blocks + 0.5) * block_size * spacing_f
     reach = band * 0.5 * math.sqrt(3.0) * block_size * spacing_f
-    centre_sdf = scipy.ndimage.map_coordinates(
-        coarse, ((centres - origin_c) / spacing_c).T, order=1, mode="nearest"
+    center_sdf = scipy.ndimage.map_coordinates(
+        coarse, ((centers - origin_c) / spacing_c).T, order=1, mode="nearest"
     ) - level
     # Trilinear interpolation of a 1-Lipschitz field errs by at most one coarse cell diagonal;
     # blocks that stick out of the coarse grid (clamped lookups) get one more block diagonal.
-    candidate = np.abs(centre_sdf) < reach + math.sqrt(3.0) * (spacing_c + block_size * spacing_f)
+    candidate = np.abs(center_sdf) < reach + math.sqrt(3.0) * (spacing_c + block_size * spacing_f)
     evaluator.total += int(candidate.sum())
-    centre_sdf[candidate] = evaluator.many_points(centres[candidate]) - level
-    active = (np.abs(centre_sdf) < reach).reshape(tuple(num_blocks))
+    center_sdf[candidate] = evaluator.many_points(centers[candidate]) - level
+    active = (np.abs(center_sdf) < reach).reshape(tuple(num_blocks))
 
     # Fill, slab by slab to bound memory, every sample with its block's sign; the active
     # blocks' samples are overwritten by evaluate.
-    fill = (level + np.where(centre_sdf < 0, -far_value, far_value)).astype(np.float32).reshape(tuple(num_blocks))
+    fill = (level + np.where(center_sdf < 0, -far_value, far_value)).astype(np.float32).reshape(tuple(num_blocks))
     fine = np.empty(tuple(counts_f), dtype=np.float32)
     for bx in range(num_blocks[0]):
         slab = np.repeat(np.repeat(fill[bx], block_size, 0), block_size, 1)
@@ -217,17 +217,17 @@ def extract_mesh(
 
     Args:
         sdf_fn: x (P, 3) float32 -> sdf (P,) or (P, 1), positive outside.
-        box_min, box_max: (3,) corners of the box to search, in sdf_fn's frame (metres).
+        box_min, box_max: (3,) corners of the box to search, in sdf_fn's frame (meters).
         resolution: samples on the longest axis of the fine (tight-box) grid; voxels are cubic.
         coarse_resolution: samples on the longest axis of the coarse grid over the whole box.
         chunk_points: most points per sdf_fn call.
         level: the iso-value.
         progress: optional callback progress(done, total), counted in SDF evaluations; `total`
-            grows as each pass is sized (coarse grid, block centres, fine samples).
+            grows as each pass is sized (coarse grid, block centers, fine samples).
         narrow_band: evaluate only blocks near the surface in the fine pass (False: every sample
             of the tight box, the reference).
         block_size: fine samples per block edge for the narrow band.
-        band: a block is evaluated when |sdf - level| at its centre is below band x its
+        band: a block is evaluated when |sdf - level| at its center is below band x its
             half-diagonal (1 is exact for a true distance field).
         device: where the points are made; default box_min's device if it is a tensor, else CPU.
     Returns:

@@ -1,4 +1,4 @@
-"""Pinhole cameras: world points to pixels, camera centres (OpenCV: x right, y down, z forward).
+"""Pinhole cameras: world points to pixels, camera centers (OpenCV: x right, y down, z forward).
 
     uv, z = project_points(K, w2c, x_world)     # (P, 2) pixels, (P,) camera depths
 """
@@ -22,5 +22,5 @@ def project_points(K: np.ndarray, w2c: np.ndarray, x_world: np.ndarray) -> tuple
 
 
 def camera_center(w2c: np.ndarray) -> np.ndarray:
-    """(3,) world position of the camera centre of a (4, 4) world-to-camera matrix."""
+    """(3,) world position of the camera center of a (4, 4) world-to-camera matrix."""
     return -w2c[:3, :3].T @ w2c[:3, 3]

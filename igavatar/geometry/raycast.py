@@ -110,13 +110,13 @@ class CameraRays:
 
     Sample (i, j) of the (H * s, W * s) grid sits at pixel coordinates
     (x, y) = (j // s + ((j % s) + 0.5) / s - 0.5, i // s + ((i % s) + 0.5) / s - 0.5), so with s = 1 the
-    rays pass through the pixel centres at integer coordinates.
+    rays pass through the pixel centers at integer coordinates.
 
     Args:
         K: (3, 3) intrinsics in pixels; w2c: (4, 4) world-to-camera; height, width: image size.
         supersample: samples per pixel along each axis (s).
     Attributes:
-        origin: (3,) camera centre in world coordinates.
+        origin: (3,) camera center in world coordinates.
         directions: (H * s, W * s, 3) float32 unit ray directions in world coordinates.
     """
 

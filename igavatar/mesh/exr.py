@@ -4,7 +4,7 @@
     maps = read_exr(path)          # {"Z": (H, W), "N": (H, W, 3), "RGB": (H, W, 3)} float32
 
 Channel naming (OpenEXR's own conventions, so any EXR viewer shows the layers):
-- a 2-D map under key K is the single channel "K"; use "Z" for depth (camera z in metres, OpenEXR's
+- a 2-D map under key K is the single channel "K"; use "Z" for depth (camera z in meters, OpenEXR's
   standard depth channel) and "A" for alpha/coverage;
 - a (H, W, 3) map under key "RGB" is the default layer's channels "R", "G", "B";
 - a (H, W, 3) map under any other key K is the layer "K" with channels "K.R", "K.G", "K.B" (the

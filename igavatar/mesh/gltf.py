@@ -4,7 +4,7 @@
                      world_to_gltf=gltf_axes("anny"))
     x_posed = pose_glb_vertices("avatar.glb", rotations_rel_canonical, root_translation)  # glTF frame
 
-Axes: glTF is +Y up, +Z forward (the front of an asset faces +Z), +X the asset's left, metres;
+Axes: glTF is +Y up, +Z forward (the front of an asset faces +Z), +X the asset's left, meters;
 every importer (Blender, three.js, Unity) converts from that. igavatar's world frame is the
 capture's (Anny: +Z up, facing -Y), so the writer takes `world_to_gltf`, the (3, 3) rotation from
 the caller's frame to glTF's (`gltf_axes(body_model)`: the body's left, up and forward axes become
@@ -28,7 +28,7 @@ Root translation is an offset added to the root node's canonical position.
 
 Stored: POSITION (with min/max), NORMAL (unit), COLOR_0 (float RGB, linear as glTF requires; the
 colors given are sRGB and converted), indices (uint32), JOINTS_0/WEIGHTS_0 (the 4 largest weights
-per vertex renormalised to sum to 1; joints as uint8, or uint16 above 256 joints; with
+per vertex renormalized to sum to 1; joints as uint8, or uint16 above 256 joints; with
 `influences=8` also JOINTS_1/WEIGHTS_1, the 8 largest summing to 1 over both sets), one skin, and
 optionally one animation (LINEAR keyframes: a rotation channel per joint, a translation channel
 on the root; fps in the animation's extras). The reader side (`read_rigged_glb`,
@@ -107,7 +107,7 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
 
 
 def top_k_weights(skin_weights: np.ndarray, k: int = INFLUENCES) -> tuple[np.ndarray, np.ndarray]:
-    """The k largest skinning weights of each vertex, renormalised.
+    """The k largest skinning weights of each vertex, renormalized.
 
     Args:
         skin_weights: (V, J) non-negative weights.
@@ -265,13 +265,13 @@ def write_rigged_glb(
 
     Args:
         path: the .glb file to write.
-        vertices: (V, 3) canonical positions in metres.
+        vertices: (V, 3) canonical positions in meters.
         faces: (F, 3) vertex indices, counter-clockwise seen from outside.
         colors: (V, 3) sRGB colors, uint8 or float in [0, 1] (None with a texture).
         joint_names: J names (node names in the file).
         parents: (J,) parent indices, -1 for the root at 0, parents before children.
         joints_canonical: (J, 3) joint positions in the canonical pose.
-        skin_weights: (V, J) non-negative skinning weights (top `influences` kept, renormalised).
+        skin_weights: (V, J) non-negative skinning weights (top `influences` kept, renormalized).
         world_to_gltf: (3, 3) rotation from the frame of every input (vertices, joints, animation)
             to glTF's +Y-up, +Z-forward frame (`gltf_axes(body_model)`); baked into the file.
         animation: optional (local_rotations (N, J, 3, 3) relative to the canonical pose,

@@ -35,13 +35,13 @@ def frontal_camera(vertices: np.ndarray, body_axes: np.ndarray, size: int, fov_d
     y_axis = -up
     x_axis = np.cross(y_axis, z_axis)
     rotation = np.stack((x_axis, y_axis, z_axis))
-    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-    local = (vertices - centre) @ rotation.T
+    center = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    local = (vertices - center) @ rotation.T
     tan_half = math.tan(math.radians(fov_deg) / 2)
     # Each vertex needs |offset in the image plane| <= tan_half * (its depth from the camera) / margin.
     margin = 1.1
     distance = float(np.max(-local[:, 2] + np.abs(local[:, :2]).max(axis=1) * margin / tan_half))
-    position = centre - z_axis * distance
+    position = center - z_axis * distance
     w2c = np.eye(4)
     w2c[:3, :3] = rotation
     w2c[:3, 3] = -rotation @ position

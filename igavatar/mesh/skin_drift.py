@@ -4,7 +4,7 @@
     drift = skin_drift_mm(vertices, sets, bone_transforms, reference)   # per frame
     # {"4": {"max": 3.1, "mean": 0.4}, "8": {"max": 1.2, "mean": 0.1}}
 
-A GLB keeps the k largest skinning weights per vertex (renormalised) and no non-rigid offset,
+A GLB keeps the k largest skinning weights per vertex (renormalized) and no non-rigid offset,
 while igavatar poses a canonical vertex with every weight of the skinning grid plus the
 pose-conditioned offset. The reference is igavatar's posed vertices of the same frame, so the
 numbers are what a user sees as the difference between a viewer and `igavatar export --pose`.

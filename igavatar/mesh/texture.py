@@ -7,7 +7,7 @@
 UV convention: `UVAtlas.uv` (V', 2) is glTF's TEXCOORD_0, in [0, 1] with u to the right and v
 *down* from the image's top row (row = v * size). OBJ's vt has v up: `obj_uv` flips it.
 
-Baking: every texel whose centre falls inside a chart triangle is mapped through that
+Baking: every texel whose center falls inside a chart triangle is mapped through that
 triangle's barycentric coordinates to a point on the 3D surface, and the color field is
 queried there (one query per texel, so the texture is as sharp as the field, not as the
 decimated mesh's vertices). Texels outside every chart are then filled from their covered
@@ -86,7 +86,7 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, size: int, padding: int = DE
     else:
         raise InputError(f"unwrap: xatlas could not pack the charts into one {size} x {size} atlas")
     vertex_map, atlas_faces, uv = atlas[0]
-    # xatlas returns UVs normalised by the atlas' own width and height (at most `size`); rescale
+    # xatlas returns UVs normalized by the atlas' own width and height (at most `size`); rescale
     # to the requested square so that uv * size is a texel position and texels stay square.
     scale = np.array([atlas.width, atlas.height], dtype=np.float64) / float(size)
     uv = np.asarray(uv, dtype=np.float64) * scale
@@ -104,16 +104,16 @@ def obj_uv(uv: np.ndarray) -> np.ndarray:
 
 
 def rasterize_uv(uv: np.ndarray, faces: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Which triangle covers each texel centre, and where.
+    """Which triangle covers each texel center, and where.
 
     Args:
         uv: (V, 2) texture coordinates in [0, 1] (v down); faces: (F, 3).
         size: texture width = height.
     Returns:
-        face (size, size) int64, -1 where no triangle covers the texel centre, and
-        barycentric (size, size, 3) float64 coordinates of the centre in that triangle.
+        face (size, size) int64, -1 where no triangle covers the texel center, and
+        barycentric (size, size, 3) float64 coordinates of the center in that triangle.
     """
-    texel = np.asarray(uv, dtype=np.float64) * size - 0.5  # texel-centre coordinates: centre (i, j) at (j, i)
+    texel = np.asarray(uv, dtype=np.float64) * size - 0.5  # texel-center coordinates: center (i, j) at (j, i)
     corners = texel[np.asarray(faces)]  # (F, 3, 2)
     lo = np.clip(np.ceil(corners.min(axis=1)), 0, size - 1).astype(np.int64)  # (F, 2): first x, y inside
     hi = np.clip(np.floor(corners.max(axis=1)), 0, size - 1).astype(np.int64)

@@ -61,7 +61,7 @@ def limb_labels(parents: np.ndarray, joint_names: list[str], joint_map: dict[str
 
 
 def covered(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> np.ndarray:
-    """(P,) bool: each point lies inside the mesh or within `tolerance` (metres) of its surface."""
+    """(P,) bool: each point lies inside the mesh or within `tolerance` (meters) of its surface."""
     _, distance, _ = closest_points_on_mesh(points, vertices, faces)
     mesh, open_edges = _watertight_trimesh(vertices, faces)
     inside = contains_points(mesh, points, watertight=open_edges == 0)
@@ -79,10 +79,10 @@ def limb_check(
     """Per body part, the share of its template vertices the predicted canonical surface covers.
 
     Args:
-        pred_vertices (V, 3), pred_faces (F, 3): predicted canonical mesh (metres).
+        pred_vertices (V, 3), pred_faces (F, 3): predicted canonical mesh (meters).
         template_vertices: (T, 3) the naked template in the same canonical pose.
         labels: (T,) part index per template vertex (`limb_labels`).
-        tolerance: metres a covered vertex may lie outside the predicted surface.
+        tolerance: meters a covered vertex may lie outside the predicted surface.
         min_covered: a part passes when at least this share of its vertices is covered.
     Returns:
         {"passed": bool, "failed_parts": [...], "parts": {part: {"vertices", "covered", "passed"}},

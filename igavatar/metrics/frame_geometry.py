@@ -63,7 +63,7 @@ def volume_check(vertices: np.ndarray, faces: np.ndarray, n_inside: int, n_point
 def vertex_distance_to_scan(
     vertices: np.ndarray, scan_vertices: np.ndarray, scan_faces: np.ndarray, seed: int, k: int = 4
 ) -> np.ndarray:
-    """Distance (V,) in metres from each vertex to the scan, for the error colors.
+    """Distance (V,) in meters from each vertex to the scan, for the error colors.
 
     Args:
         vertices: (V, 3) query points. scan_vertices (Vg, 3), scan_faces (Fg, 3): the scan.
@@ -93,7 +93,7 @@ def frame_geometry(
 
     Args:
         pred_vertices (Vp, 3), pred_faces (Fp, 3): posed prediction (already its largest component).
-        gt_vertices (Vg, 3), gt_faces (Fg, 3): the scan; both world coordinates, metres.
+        gt_vertices (Vg, 3), gt_faces (Fg, 3): the scan; both world coordinates, meters.
         options: surface samples, IoU points, whether open meshes get a ray-parity IoU, seed.
     Returns:
         (values by metric key, details dict, notes, pred vertex distance to the scan (Vp,) in mm).
@@ -137,12 +137,12 @@ def frame_geometry(
                     f"{check['signed_volume_m3'] * 1e3:.2f} L (self-intersection or holes)"
                 )
     distance = vertex_distance_to_scan(pred_vertices, gt_vertices, gt_faces, options.seed)
-    pred_centre = 0.5 * (pred_vertices.min(0) + pred_vertices.max(0))
-    gt_centre = 0.5 * (gt_vertices.min(0) + gt_vertices.max(0))
-    offset = float(np.linalg.norm(pred_centre - gt_centre))
+    pred_center = 0.5 * (pred_vertices.min(0) + pred_vertices.max(0))
+    gt_center = 0.5 * (gt_vertices.min(0) + gt_vertices.max(0))
+    offset = float(np.linalg.norm(pred_center - gt_center))
     if offset > 0.25:
         notes.append(
-            f"the prediction's box centre is {offset:.2f} m from the scan's: wrong frame, units (metres expected) or pose?"
+            f"the prediction's box center is {offset:.2f} m from the scan's: wrong frame, units (meters expected) or pose?"
         )
     values = {
         "chamfer_l2_cm2": metrics.chamfer_l2_vertices_cm2,

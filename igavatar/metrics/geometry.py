@@ -3,7 +3,7 @@
     metrics = evaluate_meshes(trimesh.load("pred_world.ply"), trimesh.load("scan_world.ply"), seed=0)
     report["geometry"] = metrics.to_dict()   # every number with its protocol and units
 
-Both meshes must be posed and in **world coordinates, metres** (a mesh left in the skeleton's root
+Both meshes must be posed and in **world coordinates, meters** (a mesh left in the skeleton's root
 frame is a caller bug that no metric can detect). Three protocols, never mixed:
 
 * paper protocol (ARAH lineage, the paper's tables): nearest neighbours between the two meshes'
@@ -152,8 +152,8 @@ def chamfer_l2_vertices_cm2(pred_vertices: Any, gt_vertices: Any) -> dict[str, f
     """Paper-protocol Chamfer-L2: mean squared vertex-to-nearest-vertex distance, in cm^2.
 
     Args:
-        pred_vertices: (Vp, 3) metres, world frame.
-        gt_vertices: (Vg, 3) metres, world frame.
+        pred_vertices: (Vp, 3) meters, world frame.
+        gt_vertices: (Vg, 3) meters, world frame.
     Returns:
         ``{"chamfer_l2_cm2": (p2g + g2p) / 2, "pred_to_gt_cm2": p2g, "gt_to_pred_cm2": g2p}`` where
         ``p2g = mean_i min_j |pred_i - gt_j|^2`` (cm^2). Averaged over the two directions, not summed.
@@ -168,7 +168,7 @@ def chamfer_l2_vertices_cm2(pred_vertices: Any, gt_vertices: Any) -> dict[str, f
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:
-    """Normalise rows to unit length; zero rows stay zero (no direction to compare)."""
+    """Normalize rows to unit length; zero rows stay zero (no direction to compare)."""
     norm = np.linalg.norm(vectors, axis=-1, keepdims=True)
     return np.divide(vectors, norm, out=np.zeros_like(vectors), where=norm > 0)
 
@@ -177,8 +177,8 @@ def normal_consistency_vertices(pred_vertices: Any, pred_normals: Any, gt_vertic
     """Paper-protocol normal consistency: ``1 - mean_gt |n_pred(nearest pred vertex) - n_gt|_2``.
 
     Args:
-        pred_vertices: (Vp, 3) metres. pred_normals: (Vp, 3) vertex normals (normalised here).
-        gt_vertices: (Vg, 3) metres. gt_normals: (Vg, 3) vertex normals (normalised here).
+        pred_vertices: (Vp, 3) meters. pred_normals: (Vp, 3) vertex normals (normalized here).
+        gt_vertices: (Vg, 3) meters. gt_normals: (Vg, 3) vertex normals (normalized here).
     Returns:
         A float in [-1, 1]: 1 for identical normals, 1 - sqrt(2) for perpendicular ones, -1 when every
         nearest normal is flipped (this protocol is orientation-sensitive).
@@ -411,7 +411,7 @@ def surface_metrics(
     """Surface protocol (X-Avatar lineage): sampled point-to-face distance (mm) and |cos| normals.
 
     Args:
-        pred_vertices (Vp, 3), pred_faces (Fp, 3), gt_vertices (Vg, 3), gt_faces (Fg, 3): metres.
+        pred_vertices (Vp, 3), pred_faces (Fp, 3), gt_vertices (Vg, 3), gt_faces (Fg, 3): meters.
         n_points: samples per surface (10,000 in the protocol). seed: fixes both sample sets.
     Returns:
         ``{"chamfer_l1_mm": (p2g + g2p) / 2, "pred_to_gt_mm", "gt_to_pred_mm",
@@ -479,7 +479,7 @@ def volumetric_iou(
     """Volumetric IoU by Monte Carlo: uniform points in the union bounding box, ray-parity inside test.
 
     Args:
-        pred_mesh, gt_mesh: trimesh.Trimesh or (vertices (V, 3), faces (F, 3)), metres, world frame.
+        pred_mesh, gt_mesh: trimesh.Trimesh or (vertices (V, 3), faces (F, 3)), meters, world frame.
         n_points: number of uniform points (>= 1e6 in the protocol; the standard error of the IoU
             is about sqrt(IoU (1 - IoU) / (n_points * union / box volume))).
         seed: fixes the points. require_watertight: raise NotWatertightError (a ValueError) naming
@@ -576,7 +576,7 @@ class GeometryMetrics:
         """JSON-ready nested dict: one section per protocol, each with its description and units."""
         values = asdict(self)
         return {
-            "frame": "world (posed meshes, metres in, units below out)",
+            "frame": "world (posed meshes, meters in, units below out)",
             "prefilter": {
                 "description": "largest connected component of the prediction kept",
                 "n_dropped_components": values["n_dropped_components"],
@@ -619,7 +619,7 @@ def evaluate_meshes(
 
     Args:
         pred_mesh, gt_mesh: trimesh.Trimesh (vertex normals from ``mesh.vertex_normals``) or
-            (vertices (V, 3), faces (F, 3)); metres, posed, world frame.
+            (vertices (V, 3), faces (F, 3)); meters, posed, world frame.
         n_surface: samples per surface for the surface protocol.
         n_iou: IoU points (0 skips the IoU: ``volumetric_iou`` is None and reported "not computed").
         seed: fixes every random draw. require_watertight: see ``volumetric_iou``.

@@ -97,7 +97,7 @@ def psnr(pred: Any, target: Any, mask: Any = None, data_range: float = 1.0) -> f
 
 
 def _gaussian_window_1d() -> np.ndarray:
-    """The normalised 1-D Gaussian taps (2 r + 1,) of the SSIM window (separable)."""
+    """The normalized 1-D Gaussian taps (2 r + 1,) of the SSIM window (separable)."""
     x = np.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=np.float64)
     taps = np.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
     return taps / taps.sum()
@@ -126,7 +126,7 @@ def ssim_map(pred: Any, target: Any, data_range: float = 1.0) -> np.ndarray:
         np.concatenate([pred, target, pred * pred, target * target, pred * target], axis=2)
     )
     mu_x, mu_y, e_xx, e_yy, e_xy = np.split(moments, 5, axis=2)
-    # Population (co)variances: E[xy] - E[x]E[y] under the normalised window (Wang et al.).
+    # Population (co)variances: E[xy] - E[x]E[y] under the normalized window (Wang et al.).
     var_x = e_xx - mu_x * mu_x
     var_y = e_yy - mu_y * mu_y
     cov_xy = e_xy - mu_x * mu_y

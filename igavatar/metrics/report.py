@@ -38,7 +38,7 @@ __all__ = [
 ]
 
 PANEL_HEADER_PX = 18
-WORLD = "world (posed meshes, metres, the capture's world frame)"
+WORLD = "world (posed meshes, meters, the capture's world frame)"
 IMAGE = "image plane of the test frame's camera"
 
 
@@ -380,14 +380,14 @@ def error_mesh_panel(
     """Scan | prediction colored by its distance to the scan | legend, seen from the test camera.
 
     Args:
-        gt_vertices (Vg, 3), gt_faces (Fg, 3): the ground-truth scan, world coordinates (metres).
+        gt_vertices (Vg, 3), gt_faces (Fg, 3): the ground-truth scan, world coordinates (meters).
         pred_vertices (Vp, 3), pred_faces (Fp, 3): the posed prediction, world coordinates.
         pred_error_mm: (Vp,) distance of each predicted vertex to the scan in mm.
         K (3, 3), w2c (4, 4), height, width: the camera (pixels, OpenCV convention).
         vmax_mm: distance shown fully red (fixed, so that panels compare across frames).
     Returns:
         (PANEL_HEADER_PX + height, 2 * width + 70, 3) uint8 RGB: a title strip above the scan shaded
-        grey, the prediction in JET colors and the legend.
+        gray, the prediction in JET colors and the legend.
     """
     pred_error_mm = np.asarray(pred_error_mm, np.float64).reshape(-1)
     if pred_error_mm.shape[0] != np.asarray(pred_vertices).shape[0]:
@@ -395,8 +395,8 @@ def error_mesh_panel(
             f"error_mesh_panel: {pred_error_mm.shape[0]} errors for {np.asarray(pred_vertices).shape[0]} predicted vertices"
         )
     rays = CameraRays(np.asarray(K, np.float64), np.asarray(w2c, np.float64), height, width, supersample=1)
-    grey = np.full((np.asarray(gt_vertices).shape[0], 3), 0.78)
-    gt_image = _render_colored(gt_vertices, gt_faces, grey, rays)
+    gray = np.full((np.asarray(gt_vertices).shape[0], 3), 0.78)
+    gt_image = _render_colored(gt_vertices, gt_faces, gray, rays)
     pred_image = _render_colored(pred_vertices, pred_faces, error_colors(pred_error_mm, vmax_mm), rays)
     to_u8 = lambda x: np.round(np.clip(x, 0, 1) * 255).astype(np.uint8)  # noqa: E731
     panel = np.concatenate([to_u8(gt_image), to_u8(pred_image), _color_bar(height, vmax_mm)], axis=1)
@@ -407,9 +407,9 @@ def error_mesh_panel(
     return np.concatenate([header, panel], axis=0)
 
 
-def _look_from(centre: np.ndarray, direction: np.ndarray, distance: float) -> np.ndarray:
-    """(4, 4) OpenCV w2c of a camera `distance` from `centre` along `direction`, looking back, +Z up."""
-    eye = centre + distance * direction
+def _look_from(center: np.ndarray, direction: np.ndarray, distance: float) -> np.ndarray:
+    """(4, 4) OpenCV w2c of a camera `distance` from `center` along `direction`, looking back, +Z up."""
+    eye = center + distance * direction
     forward = -direction / np.linalg.norm(direction)
     right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
     right /= np.linalg.norm(right)
@@ -430,16 +430,16 @@ def canonical_views_image(meshes: Sequence[tuple[str, np.ndarray, np.ndarray]], 
         (rows * size, 2 * size, 3) uint8: one row per mesh, front | side, titled.
     """
     everything = np.concatenate([np.asarray(v, np.float64) for _, v, _ in meshes])
-    centre = 0.5 * (everything.min(0) + everything.max(0))
+    center = 0.5 * (everything.min(0) + everything.max(0))
     extent = float((everything.max(0) - everything.min(0)).max())
     distance = 4.0 * extent
     focal = size * distance / (1.15 * extent)
     K = np.array([[focal, 0.0, (size - 1) / 2], [0.0, focal, (size - 1) / 2], [0.0, 0.0, 1.0]])
-    views = [_look_from(centre, np.array([0.0, -1.0, 0.0]), distance), _look_from(centre, np.array([1.0, 0.0, 0.0]), distance)]
+    views = [_look_from(center, np.array([0.0, -1.0, 0.0]), distance), _look_from(center, np.array([1.0, 0.0, 0.0]), distance)]
     rows = []
     for title, vertices, faces in meshes:
-        grey = np.full((len(vertices), 3), 0.75)
-        row = [(_render_colored(vertices, faces, grey, CameraRays(K, w2c, size, size, supersample=1)) * 255).round().astype(np.uint8)
+        gray = np.full((len(vertices), 3), 0.75)
+        row = [(_render_colored(vertices, faces, gray, CameraRays(K, w2c, size, size, supersample=1)) * 255).round().astype(np.uint8)
                for w2c in views]
         image = np.ascontiguousarray(np.concatenate(row, axis=1))
         _text(image, f"{title}: front | side", (6, 16))

@@ -40,13 +40,13 @@ class AvatarConfig:
     color: ColorFieldConfig = field(default_factory=ColorFieldConfig)
     """Canonical color field."""
     density: LaplaceDensityConfig = field(default_factory=lambda: LaplaceDensityConfig(beta_init=0.075))
-    """Laplace density; beta starts at 0.075 after shape initialisation (official)."""
+    """Laplace density; beta starts at 0.075 after shape initialization (official)."""
     nonrigid_width: int = 128
     """Hidden width of the non-rigid offset MLP."""
     nonrigid_layers: int = 4
     """Hidden layers of the non-rigid offset MLP."""
     nonrigid_max_offset: float = 0.1
-    """Bound of the non-rigid offset in metres (output = bound * tanh)."""
+    """Bound of the non-rigid offset in meters (output = bound * tanh)."""
     deformer: DeformerConfig = field(default_factory=lambda: DeformerConfig(init_top_k=4))
     """Root finding; by default each point starts from the 4 bones that best explain it rigidly."""
 

@@ -6,7 +6,7 @@
 Forward skinning `LBS(x_c) = sum_j w_j(x_c) B_j x_c` uses the per-frame blended transform grid
 `T = sum_j w_j B_j` (one trilinear lookup per point). Canonicalisation solves `LBS(x_c) = x_d` for
 every posed point from several starts (`x_d` rigidly un-posed by each init bone), with Broyden's
-"good" update of the inverse Jacobian, initialised at `(sum_j w_j R_j)^-1` (dw/dx ignored, as
+"good" update of the inverse Jacobian, initialized at `(sum_j w_j R_j)^-1` (dw/dx ignored, as
 Fast-SNARF). A root is valid when it converged, lies inside the grid box and is not a duplicate of
 an earlier valid root of the same point. Root finding runs without autograd; gradients come back
 through `attach_implicit_gradient` (implicit function theorem).
@@ -58,7 +58,7 @@ class DeformerConfig:
     max_iterations: int = 10
     """Broyden iterations per start point."""
     converge_threshold: float = 1e-5
-    """A start converged when |LBS(x_c) - x_d| < this (world units, metres)."""
+    """A start converged when |LBS(x_c) - x_d| < this (world units, meters)."""
     diverge_threshold: float = 0.1
     """A start stops iterating once its current residual norm exceeds this."""
     duplicate_threshold: float = 1e-4

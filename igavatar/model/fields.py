@@ -3,9 +3,9 @@
     sdf_field = SDFField(SDFFieldConfig(), box_min=torch.full((3,), -1.0), box_max=torch.ones(3))
     sdf, feature, grad_sdf = sdf_field.forward_with_gradient(x_canonical)  # (P,), (P, 16), (P, 3)
 
-``SDFField`` maps a canonical point to a signed distance (metres, positive outside) and a 16-d
+``SDFField`` maps a canonical point to a signed distance (meters, positive outside) and a 16-d
 feature whose channel 0 is that distance (as in the official InstantGeoAvatar code). Its input is the
-hash-grid encoding plus the point itself, centred on the box and divided by the box's largest
+hash-grid encoding plus the point itself, centerd on the box and divided by the box's largest
 half-extent. ``forward_with_gradient`` returns ``d sdf / d x_canonical`` in closed form: the hash
 grid's spatial Jacobian chained with the MLP's Jacobian (a reverse sweep over the small MLP), so the
 eikonal and smoothness losses train the field with one ordinary backward pass.
@@ -69,7 +69,7 @@ class SDFFieldConfig:
     """Sharpness of the Softplus activation (a smooth ReLU, so the SDF has smooth gradients)."""
 
     sphere_radius: float = 0.5
-    """Radius in metres of the sphere, centred on the box, that the SDF represents at initialisation."""
+    """Radius in meters of the sphere, centerd on the box, that the SDF represents at initialization."""
 
     pe_frequencies: int = 0
     """Fourier frequencies of a positional encoding added to the MLP input (the hybrid encoding
@@ -89,8 +89,8 @@ class SDFField(nn.Module):
     """Canonical SDF: ``x_canonical (P, 3) -> (sdf (P,), feature (P, feature_dim))``.
 
     Submodules: ``encoding`` (HashGridEncoding over the box), ``layers`` (nn.ModuleList of Linear:
-    input ``3 + L*F`` -> hidden ... -> ``feature_dim``). Buffers: ``centre (3,)`` (box centre) and
-    ``input_scale`` (largest half-extent of the box, metres).
+    input ``3 + L*F`` -> hidden ... -> ``feature_dim``). Buffers: ``center (3,)`` (box center) and
+    ``input_scale`` (largest half-extent of the box, meters).
     """
 
     def __init__(self, config: SDFFieldConfig, box_min: torch.Tensor, box_max: torch.Tensor) -> None:
@@ -99,9 +99,9 @@ class SDFField(nn.Module):
         self.encoding = HashGridEncoding(config.hash_grid, box_min, box_max) if config.use_hash_grid else None
         box_min = torch.as_tensor(box_min, dtype=torch.float32)
         box_max = torch.as_tensor(box_max, dtype=torch.float32)
-        centre = 0.5 * (box_min + box_max)
+        center = 0.5 * (box_min + box_max)
         half_extent = 0.5 * (box_max - box_min)
-        self.register_buffer("centre", centre)
+        self.register_buffer("centre", center)
         self.register_buffer("input_scale", half_extent.max().reshape(()))
         # Per-level multipliers of the hash features: all ones except while the hybrid encoding
         # opens its levels coarse-to-fine (set_level_weights).
@@ -116,14 +116,14 @@ class SDFField(nn.Module):
 
     @torch.no_grad()
     def reset_to_sphere(self) -> None:
-        """Geometric initialisation: ``sdf(x) ~= |x - centre| - sphere_radius`` over the whole space.
+        """Geometric initialization: ``sdf(x) ~= |x - center| - sphere_radius`` over the whole space.
 
         A variant of SAL's geometric init (Atzmon & Lipman 2020) made exact rather than exact in
         expectation: with zero biases every first-layer unit is ``relu(a * d_i . x_in)`` and, for
         directions d_i spread uniformly over the sphere, ``sum_i relu(d_i . u)`` is nearly the
         same for every unit vector u. With 64 units, Fibonacci-sphere directions make it so to 0.4 %
         (std over u; SAL's random Gaussian rows leave 15-20 %); the output weight then
-        normalises the sum to ``|x_in| * input_scale = |x - centre|`` and the bias is ``-radius``
+        normalizes the sum to ``|x_in| * input_scale = |x - center|`` and the bias is ``-radius``
         (the official release forgets this bias). Deeper hidden layers start as the identity,
         which passes ``relu`` activations through unchanged. The hash-feature columns get small
         Gaussian weights: the table starts at +-1e-4, so they perturb the sphere by ~1e-4 m,
@@ -185,10 +185,10 @@ class SDFField(nn.Module):
         return self.encoding.forward_with_jacobian(x_canonical)
 
     def _mlp_input(self, x_canonical: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
-        x_centred = (x_canonical.to(encoded.dtype) - self.centre.to(encoded.dtype)) / self.input_scale.to(encoded.dtype)
-        parts = [x_centred]
+        x_centerd = (x_canonical.to(encoded.dtype) - self.centre.to(encoded.dtype)) / self.input_scale.to(encoded.dtype)
+        parts = [x_centerd]
         if self.config.pe_frequencies:
-            angles = x_centred[:, None, :] * self.pe_omegas.to(encoded.dtype)[None, :, None]  # (P, K, 3)
+            angles = x_centerd[:, None, :] * self.pe_omegas.to(encoded.dtype)[None, :, None]  # (P, K, 3)
             parts.append(torch.stack((angles.sin(), angles.cos()), dim=2).flatten(1))  # (P, K*2*3)
         parts.append(encoded * self._feature_scale(encoded.dtype))
         return torch.cat(parts, dim=-1)
@@ -236,21 +236,21 @@ class SDFField(nn.Module):
         grad_h = self.layers[-1].weight[0]  # (hidden,), broadcasts over points
         for layer, slope in zip(reversed(self.layers[:-1]), reversed(slopes)):
             grad_h = (grad_h * slope) @ layer.weight
-        grad_input = grad_h  # (P, 3 + 6K + C): d sdf / d (x_centred, pe, encoded)
+        grad_input = grad_h  # (P, 3 + 6K + C): d sdf / d (x_centerd, pe, encoded)
         scale = self.input_scale.to(grad_input.dtype)
         n_pe = 6 * self.config.pe_frequencies
-        grad_x_centred = grad_input[:, :3]
+        grad_x_centerd = grad_input[:, :3]
         if n_pe:
-            x_centred = (x_canonical.to(grad_input.dtype) - self.centre.to(grad_input.dtype)) / scale
+            x_centerd = (x_canonical.to(grad_input.dtype) - self.centre.to(grad_input.dtype)) / scale
             omegas = self.pe_omegas.to(grad_input.dtype)[None, :, None]
-            angles = x_centred[:, None, :] * omegas  # (P, K, 3)
+            angles = x_centerd[:, None, :] * omegas  # (P, K, 3)
             grad_pe = grad_input[:, 3:3 + n_pe].reshape(-1, self.config.pe_frequencies, 2, 3)
             # d sin(w x)/dx = w cos(w x); d cos(w x)/dx = -w sin(w x), per axis.
-            grad_x_centred = grad_x_centred + (
+            grad_x_centerd = grad_x_centerd + (
                 grad_pe[:, :, 0] * omegas * angles.cos() - grad_pe[:, :, 1] * omegas * angles.sin()
             ).sum(dim=1)
         grad_encoded = grad_input[:, 3 + n_pe:] * self._feature_scale(grad_input.dtype)
-        grad_sdf = grad_x_centred / scale + torch.einsum("pc,pcd->pd", grad_encoded, jacobian)
+        grad_sdf = grad_x_centerd / scale + torch.einsum("pc,pcd->pd", grad_encoded, jacobian)
         return feature[:, 0], feature, grad_sdf
 
 
@@ -308,7 +308,7 @@ class LaplaceDensityConfig:
     """VolSDF density from signed distance: the CDF of a zero-mean Laplace distribution of scale beta."""
 
     beta_init: float = 0.1
-    """Initial beta in metres (official: 0.075 after the body-shape initialisation)."""
+    """Initial beta in meters (official: 0.075 after the body-shape initialization)."""
 
     beta_min: float = 1e-4
     """Lower bound of beta, so the density stays finite."""
@@ -325,7 +325,7 @@ class LaplaceDensity(nn.Module):
 
     Parameter ``beta_offset`` (scalar): ``beta = min(beta_min + |beta_offset|, beta_ceiling)``. The
     absolute value (as in VolSDF) keeps beta >= beta_min with a non-zero gradient; a hard clamp would
-    freeze beta for good once an optimiser step pushed it below the bound. Buffer ``beta_ceiling``
+    freeze beta for good once an optimizer step pushed it below the bound. Buffer ``beta_ceiling``
     (scalar, +inf unless training anneals it, see TrainConfig.beta_final) caps the learned beta.
     """
 
@@ -341,7 +341,7 @@ class LaplaceDensity(nn.Module):
         return torch.minimum(self.config.beta_min + self.beta_offset.abs(), self.beta_ceiling)
 
     def set_ceiling(self, ceiling: float) -> None:
-        """Cap beta at `ceiling` metres (inf: no cap)."""
+        """Cap beta at `ceiling` meters (inf: no cap)."""
         self.beta_ceiling.fill_(ceiling)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:

@@ -4,7 +4,7 @@
     features, jacobian = grid.forward_with_jacobian(x_canonical)  # (P, 32), (P, 32, 3)
 
 Points are given in the canonical frame, clamped into the axis-aligned box ``[box_min, box_max]`` and
-normalised to ``[0, 1]^3``. Level ``l`` has a grid of ``N_l`` cells per axis (``N_l + 1`` vertices);
+normalized to ``[0, 1]^3``. Level ``l`` has a grid of ``N_l`` cells per axis (``N_l + 1`` vertices);
 its features are the trilinear interpolation of the 8 vertex features around a point. Coarse levels
 whose ``(N_l + 1)^3`` vertices fit into the table are indexed densely (no collisions); finer levels
 use the Instant-NGP spatial hash ``(i * 1) ^ (j * 2654435761) ^ (k * 805459861) mod T``.
@@ -143,7 +143,7 @@ class HashGridEncoding(nn.Module):
     """Multiresolution hash encoding of canonical points, output ``(P, L * F)``, level-major.
 
     Parameters: ``table (sum_l T_l, F)``, all levels stacked (``level_offsets`` gives the first row
-    of each level); initialised uniformly in ``[-1e-4, 1e-4]``. Buffers ``box_min``, ``box_max`` (3,).
+    of each level); initialized uniformly in ``[-1e-4, 1e-4]``. Buffers ``box_min``, ``box_max`` (3,).
     """
 
     def __init__(self, config: HashGridConfig, box_min: torch.Tensor, box_max: torch.Tensor) -> None:

@@ -10,7 +10,7 @@ Choices (see each docstring): ``rgb_loss`` defaults to MSE, as the released Inst
 (the paper only says "photometric loss"; InstantAvatar used Huber with delta 0.1, available as
 ``kind="huber"``). ``alpha_loss`` defaults to L1 as the paper states (the release uses MSE).
 ``eikonal_loss`` averages over valid samples only (the release also averages the dummy gradients
-of empty slots). ``smooth_loss_along_ray`` is Eq. 9 with the literal ``1 / N_s^i`` normaliser.
+of empty slots). ``smooth_loss_along_ray`` is Eq. 9 with the literal ``1 / N_s^i`` normalizer.
 """
 
 from __future__ import annotations
@@ -186,7 +186,7 @@ def smooth_loss_along_ray(
     skipped empty space and enters another (the torso) then does not pull the normals of the two
     surfaces together. Eq. 9 does not say which; the literal reading is ``"valid"``.
 
-    Normalisation: per ray, the pair sum is divided by ``N_s^i`` = its number of valid samples,
+    Normalization: per ray, the pair sum is divided by ``N_s^i`` = its number of valid samples,
     as Eq. 9 writes (``normalization="pairs"`` divides by ``N_s^i - 1`` instead, a true mean per
     pair). The result is the mean over rays with at least two valid samples; rays with fewer have
     no pair and are not counted, so the value does not depend on how many rays miss the body.

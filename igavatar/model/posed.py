@@ -28,7 +28,7 @@ from igavatar.render.occupancy import OccupancyGrid
 from igavatar.render.sampler import RaySamples
 from igavatar.render.volume import FieldOutput
 
-#: Metres: the SDF of posed points with no canonical correspondence ("far outside").
+#: Meters: the SDF of posed points with no canonical correspondence ("far outside").
 NO_ROOT_SDF = 1.0
 
 

@@ -4,8 +4,8 @@
     samples = sample_along_rays(rays, 256, posed_grid.is_occupied)
 
 The canonical grid is refreshed from the canonical density (cheap: no deformer). Each frame's posed
-grid is then the set of posed cells reached by the centres of its occupied canonical cells pushed
-through forward LBS, dilated by `dilation` cells: neighbouring canonical centres land about a cell
+grid is then the set of posed cells reached by the centers of its occupied canonical cells pushed
+through forward LBS, dilated by `dilation` cells: neighbouring canonical centers land about a cell
 apart, so the dilation closes the gaps between them (and covers small non-rigid offsets). Rebuilding it is
 a few milliseconds, so every frame (training or animation) gets its own, never the first one's.
 """

@@ -136,7 +136,7 @@ def sdf_head_with_gradient(
     """The SDF MLP and the closed-form gradient of its first output wrt the point (see module doc).
 
     Args:
-        mlp_input: (P, D) with D = 3 + C: the centred, scaled point, then the C hash features.
+        mlp_input: (P, D) with D = 3 + C: the centerd, scaled point, then the C hash features.
         jacobian: (P, C, 3) d hash features / d point.
         grad_scale: (D,) k: d mlp_input[:, :3] / d point per axis, then the level weight of each feature.
         first: Linear D -> H (Softplus after it); last: Linear H -> F.

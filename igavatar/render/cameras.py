@@ -4,8 +4,8 @@
     K_small = resize_intrinsics(K_dataset, (512, 512), (256, 256))
 
 Conventions (DESIGN.md): OpenCV cameras (x right, y down, z forward), ``w2c`` (4, 4)
-world-to-camera, ``K`` (3, 3) in pixels with pixel centres at integer coordinates, so the image
-centre is ``((W - 1) / 2, (H - 1) / 2)``. Every function is device-agnostic and returns float32
+world-to-camera, ``K`` (3, 3) in pixels with pixel centers at integer coordinates, so the image
+center is ``((W - 1) / 2, (H - 1) / 2)``. Every function is device-agnostic and returns float32
 tensors on the device of its first tensor argument (arithmetic is done in float64).
 """
 
@@ -20,7 +20,7 @@ from igavatar.errors import InputError
 
 __all__ = [
     "box_corners",
-    "camera_centres",
+    "camera_centers",
     "fit_intrinsics",
     "look_at_w2c",
     "orbit_w2c",
@@ -41,7 +41,7 @@ def look_at_w2c(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     whose viewing direction is horizontal gives an upright, level image.
 
     Args:
-        eye: (..., 3) camera centres; target: (..., 3) points looked at; up: (3,) world up.
+        eye: (..., 3) camera centers; target: (..., 3) points looked at; up: (3,) world up.
     Returns:
         (..., 4, 4) float32 w2c.
     Raises:
@@ -52,7 +52,7 @@ def look_at_w2c(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     forward = target64 - eye64
     forward_norm = torch.linalg.vector_norm(forward, dim=-1, keepdim=True)
     if bool((forward_norm < 1e-9).any()):
-        raise InputError("camera: the camera centre coincides with the point it looks at")
+        raise InputError("camera: the camera center coincides with the point it looks at")
     forward = forward / forward_norm
     right = torch.linalg.cross(forward, up64.expand_as(forward), dim=-1)
     right_norm = torch.linalg.vector_norm(right, dim=-1, keepdim=True)
@@ -68,14 +68,14 @@ def look_at_w2c(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     return w2c.to(torch.float32)
 
 
-def camera_centres(w2c: Tensor) -> Tensor:
-    """World positions (..., 3) of the centres of cameras w2c (..., 4, 4): -R^T t."""
+def camera_centers(w2c: Tensor) -> Tensor:
+    """World positions (..., 3) of the centers of cameras w2c (..., 4, 4): -R^T t."""
     rotation, translation = w2c[..., :3, :3], w2c[..., :3, 3:]
     return -(rotation.transpose(-1, -2) @ translation)[..., 0]
 
 
 def orbit_w2c(
-    centre: Tensor,
+    center: Tensor,
     radius: float,
     azimuths: Tensor,
     *,
@@ -83,34 +83,34 @@ def orbit_w2c(
     front: Tensor,
     elevation: float = 0.0,
 ) -> Tensor:
-    """Cameras on a circle about the vertical through `centre`, all looking at `centre`.
+    """Cameras on a circle about the vertical through `center`, all looking at `center`.
 
     Azimuth 0 puts the camera on the `front` side (e.g. in front of the subject's face); positive
     azimuths turn it counter-clockwise seen from above (right-handed about `up`).
 
     Args:
-        centre: (3,) point looked at; radius: distance from the camera to `centre` (metres).
+        center: (3,) point looked at; radius: distance from the camera to `center` (meters).
         azimuths: (N,) angles in radians; elevation: angle above the horizontal plane (radians).
-        up: (3,) world up; front: (3,) direction from `centre` towards the camera at azimuth 0
+        up: (3,) world up; front: (3,) direction from `center` towards the camera at azimuth 0
             (its component along `up` is ignored).
     Returns:
         (N, 4, 4) float32 w2c.
     """
     if not radius > 0:
         raise InputError(f"camera orbit: radius = {radius}, expected a positive distance")
-    centre64 = _vector(centre)
-    up64 = _vector(up, centre64)
+    center64 = _vector(center)
+    up64 = _vector(up, center64)
     up64 = up64 / torch.linalg.vector_norm(up64)
-    front64 = _vector(front, centre64)
+    front64 = _vector(front, center64)
     front64 = front64 - (front64 @ up64) * up64
     if float(torch.linalg.vector_norm(front64)) < 1e-9:
         raise InputError("camera orbit: the front direction is parallel to the up axis")
     front64 = front64 / torch.linalg.vector_norm(front64)
     side64 = torch.linalg.cross(up64, front64, dim=-1)  # front rotated by +90 degrees about up
-    angles = torch.as_tensor(azimuths, dtype=torch.float64, device=centre64.device).reshape(-1, 1)
+    angles = torch.as_tensor(azimuths, dtype=torch.float64, device=center64.device).reshape(-1, 1)
     horizontal = torch.cos(angles) * front64 + torch.sin(angles) * side64
     offset = radius * (math.cos(elevation) * horizontal + math.sin(elevation) * up64)
-    return look_at_w2c(centre64 + offset, centre64.expand_as(offset), up64)
+    return look_at_w2c(center64 + offset, center64.expand_as(offset), up64)
 
 
 def box_corners(box_min: Tensor, box_max: Tensor) -> Tensor:
@@ -125,7 +125,7 @@ def box_corners(box_min: Tensor, box_max: Tensor) -> Tensor:
 def fit_intrinsics(
     x_world: Tensor, w2c: Tensor, height: int, width: int, *, margin: float = 0.05
 ) -> Tensor:
-    """Intrinsics (3, 3) that keep every point inside every view, principal point at the centre.
+    """Intrinsics (3, 3) that keep every point inside every view, principal point at the center.
 
     The focal length (square pixels) is the largest one for which all points project at least
     `margin` x the image size away from the border in all views, so one K fits a whole sequence.
@@ -183,7 +183,7 @@ def turntable_cameras(
 ) -> tuple[Tensor, Tensor]:
     """An orbit around a box (e.g. the union of a sequence's posed boxes) with one K framing it.
 
-    Frame i sees the box centre from azimuth ``2 pi * revolutions * i / n_frames`` (0 = `front`),
+    Frame i sees the box center from azimuth ``2 pi * revolutions * i / n_frames`` (0 = `front`),
     at `distance_factor` x the box's half diagonal; `revolutions` = 0 gives a static front camera.
 
     Args:
@@ -201,10 +201,10 @@ def turntable_cameras(
     if not distance_factor > 1.0:
         raise InputError(f"turntable camera: distance_factor = {distance_factor}, expected > 1 (outside the box)")
     low, high = _vector(box_min), _vector(box_max, box_min)
-    centre = 0.5 * (low + high)
+    center = 0.5 * (low + high)
     half_diagonal = max(0.5 * float(torch.linalg.vector_norm(high - low)), 1e-3)
     azimuths = 2.0 * math.pi * revolutions * torch.arange(n_frames, dtype=torch.float64) / n_frames
-    w2c = orbit_w2c(centre, distance_factor * half_diagonal, azimuths, up=up, front=front, elevation=elevation)
+    w2c = orbit_w2c(center, distance_factor * half_diagonal, azimuths, up=up, front=front, elevation=elevation)
     points = box_corners(low, high) if fit_points is None else fit_points
     K = fit_intrinsics(points, w2c, height, width, margin=margin)
     return K, w2c
@@ -213,7 +213,7 @@ def turntable_cameras(
 def resize_intrinsics(K: Tensor, size_hw: tuple[int, int], new_size_hw: tuple[int, int]) -> Tensor:
     """Intrinsics (..., 3, 3) of the same camera rendering at `new_size_hw` instead of `size_hw`.
 
-    Pixel centres sit at integer coordinates, so a centre x maps to s * (x + 0.5) - 0.5.
+    Pixel centers sit at integer coordinates, so a center x maps to s * (x + 0.5) - 0.5.
     """
     (h, w), (new_h, new_w) = size_hw, new_size_hw
     sx, sy = new_w / w, new_h / h

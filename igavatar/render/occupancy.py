@@ -163,8 +163,8 @@ class OccupancyGrid(nn.Module):
         occ = self.occupied[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
         return occ & inside
 
-    def cell_centres(self) -> Tensor:
-        """(D, H, W, 3) world-frame centres of all cells, ``[iz, iy, ix] -> (x, y, z)``."""
+    def cell_centers(self) -> Tensor:
+        """(D, H, W, 3) world-frame centers of all cells, ``[iz, iy, ix] -> (x, y, z)``."""
         return self._cell_points(torch.full((1, 1, 1, 3), 0.5, device=self.box_min.device))
 
     # ------------------------------------------------------------------ updates
@@ -268,10 +268,10 @@ class OccupancyGrid(nn.Module):
         old_min, old_max = self.box_min.clone(), self.box_max.clone()
         self.box_min.copy_(box_min)
         self.box_max.copy_(box_max)
-        centres = self.cell_centres()  # (D, H, W, 3) in the new box
+        centers = self.cell_centers()  # (D, H, W, 3) in the new box
         # grid_sample with align_corners=False maps -1/+1 to the outer faces of the old box,
-        # i.e. cell centres of the old grid sit where its cached values were measured.
-        grid = (centres - old_min) / (old_max - old_min) * 2.0 - 1.0
+        # i.e. cell centers of the old grid sit where its cached values were measured.
+        grid = (centers - old_min) / (old_max - old_min) * 2.0 - 1.0
         resampled = F.grid_sample(
             self.cached[None, None],
             grid[None],

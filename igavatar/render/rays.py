@@ -4,9 +4,9 @@
     rays = rays_in_box(origins, directions, box_min, box_max)   # RayBundle with near/far
 
 Conventions (DESIGN.md): OpenCV camera (x right, y down, z forward), ``K`` (3, 3) in pixels,
-``w2c`` (4, 4) world-to-camera, pixel centres at integer coordinates (pixel (u, v) covers
+``w2c`` (4, 4) world-to-camera, pixel centers at integer coordinates (pixel (u, v) covers
 [u - 0.5, u + 0.5]). Directions are unit length, so the ray parameter ``t`` is a distance in
-metres, and ``near``/``far`` are distances along the ray.
+meters, and ``near``/``far`` are distances along the ray.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ class RayBundle:
 
 
 def pixel_grid(height: int, width: int, device: torch.device | str | None = None) -> Tensor:
-    """All pixel centres of an image, row-major.
+    """All pixel centers of an image, row-major.
 
     Returns:
         (H * W, 2) float32 ``(x, y)`` = (column, row); index ``y * W + x`` is pixel (x, y).
@@ -77,15 +77,15 @@ def pixel_grid(height: int, width: int, device: torch.device | str | None = None
 
 
 def pixel_rays(K: Tensor, w2c: Tensor, pixels_xy: Tensor) -> tuple[Tensor, Tensor]:
-    """Rays through pixel centres of an OpenCV pinhole camera, in the frame ``w2c`` maps from.
+    """Rays through pixel centers of an OpenCV pinhole camera, in the frame ``w2c`` maps from.
 
     Args:
         K: (3, 3) intrinsics in pixels.
         w2c: (4, 4) world-to-camera rigid transform.
-        pixels_xy: (R, 2) float pixel coordinates ``(x, y)``; integer values are pixel centres.
+        pixels_xy: (R, 2) float pixel coordinates ``(x, y)``; integer values are pixel centers.
 
     Returns:
-        origins (R, 3) (all equal to the camera centre) and unit directions (R, 3), world frame.
+        origins (R, 3) (all equal to the camera center) and unit directions (R, 3), world frame.
     """
     if K.shape != (3, 3):
         raise ValueError(f"pixel_rays: K has shape {tuple(K.shape)}, expected (3, 3)")
@@ -102,11 +102,11 @@ def pixel_rays(K: Tensor, w2c: Tensor, pixels_xy: Tensor) -> tuple[Tensor, Tenso
     d_camera = torch.linalg.solve(K, torch.cat([pixels_xy, ones], dim=-1).T).T  # (R, 3), z = 1
     rot_w2c = w2c[:3, :3]
     trans_w2c = w2c[:3, 3]
-    # c2w = [R^T | -R^T t]: camera centre and rotated directions without inverting a 4x4.
-    centre_world = -rot_w2c.T @ trans_w2c
+    # c2w = [R^T | -R^T t]: camera center and rotated directions without inverting a 4x4.
+    center_world = -rot_w2c.T @ trans_w2c
     d_world = d_camera @ rot_w2c  # row-vector form of R^T d
     directions = d_world / torch.linalg.vector_norm(d_world, dim=-1, keepdim=True)
-    origins = centre_world.expand_as(directions).contiguous()
+    origins = center_world.expand_as(directions).contiguous()
     return origins, directions
 
 

@@ -42,7 +42,7 @@ class FieldOutput:
         gradient: (M, 3) or None; SDF gradient (analytic), used by the eikonal and smoothness
             losses; also gives the normal map when ``normal`` is None.
         normal: (M, 3) or None; unit normal for the normal map when it differs from the
-            normalised gradient (e.g. gradient in canonical space, normal rotated to posed).
+            normalized gradient (e.g. gradient in canonical space, normal rotated to posed).
         sdf: (M,) or None; signed distance, passed through for losses that want it.
     """
 
@@ -247,7 +247,7 @@ class ImageRender:
         opacity: (H, W) accumulated weight.
         depth: (H, W) expected distance along the ray divided by opacity (surface depth; 0 where
             opacity < 1e-6). Distance along the ray, not camera z.
-        normal: (H, W, 3) composited normal normalised to unit length (0 where opacity < 1e-6),
+        normal: (H, W, 3) composited normal normalized to unit length (0 where opacity < 1e-6),
             in the frame of the field's normals.
     """
 
@@ -274,7 +274,7 @@ def render_image(
 ) -> ImageRender:
     """Render a full image in ray chunks (eval): midpoint samples, early termination, no graph kept.
 
-    Rays are cast through every pixel centre; near/far come from ``box_min``/``box_max`` (3,) in
+    Rays are cast through every pixel center; near/far come from ``box_min``/``box_max`` (3,) in
     the rays' frame. Autograd stays enabled so a field may compute analytic gradients, but each
     chunk's outputs are detached so memory does not grow with the image.
 

@@ -4,8 +4,8 @@
     grid = build_bone_skinning_grid(joints_canonical, skeleton, box_min, box_max, (64, 16, 64))
 
 A point's weights are a softmax over the joints of minus its (penalised) distance to each joint's
-bone segments (igavatar.body.bones), divided by a temperature of a few centimetres: a point on a
-bone takes (almost) all of its weight from it, and weights blend smoothly over a few centimetres
+bone segments (igavatar.body.bones), divided by a temperature of a few centimeters: a point on a
+bone takes (almost) all of its weight from it, and weights blend smoothly over a few centimeters
 where bones meet. Distance alone goes wrong where a bone passes near a body part it does not
 move, so two penalties add to the distance:
   - behind the joint: a bone's weight fades for points behind the plane through its joint that
@@ -54,15 +54,15 @@ def _float64(values: torch.Tensor | np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BoneWeightConfig:
-    """How bone distances become weights (lengths in metres)."""
+    """How bone distances become weights (lengths in meters)."""
 
     temperature_m: float = 0.02
     """Softmax temperature: weights of two bones at distances d1 < d2 have the ratio
     exp((d2 - d1) / T), so blends span a few T around where bones meet."""
     behind_penalty: float = 1.0
-    """Extra distance per metre a point lies behind a joint's plane (on its parent's side)."""
+    """Extra distance per meter a point lies behind a joint's plane (on its parent's side)."""
     midplane_penalty: float = 10.0
-    """Extra distance per metre a point lies across the midplane from a sided bone."""
+    """Extra distance per meter a point lies across the midplane from a sided bone."""
     smoothing_iterations: int = 2
     """3x3x3 box-blur passes over the grid (smooth_weights_grid), as the template grid gets."""
 
@@ -111,7 +111,7 @@ def _bones(joints: np.ndarray, skeleton: Skeleton) -> _Bones:
 
 
 def _penalised_distances(points: np.ndarray, bones: _Bones, config: BoneWeightConfig) -> np.ndarray:
-    """(P, J) distance from each point to each joint's bone, plus the penalties (metres)."""
+    """(P, J) distance from each point to each joint's bone, plus the penalties (meters)."""
     distance, _ = segment_distances(points, bones.segments)
     per_joint = np.full((points.shape[0], bones.joints.shape[0]), np.inf)
     for b, j in enumerate(bones.segments.joint):

@@ -72,7 +72,7 @@ def canonical_grid_box(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Axis-aligned box around a canonical body, as Fast-SNARF/InstantAvatar size their grid.
 
-    A cube centred on the body's bounding-box centre with half-size `scale` x the body's largest
+    A cube centerd on the body's bounding-box center with half-size `scale` x the body's largest
     half-extent; the depth axis `squeeze_axis` (igavatar's body frame is +Z up and faces -Y, so
     depth is axis 1 = Y; SMPL's is 2 = Z) has its half-size divided by `squeeze`, which spends the
     voxels where the body is, a thin slab in depth.
@@ -96,14 +96,14 @@ def canonical_grid_box(
     vertices = vertices.to(torch.float32)
     lower = vertices.min(dim=0).values
     upper = vertices.max(dim=0).values
-    centre = 0.5 * (lower + upper)
+    center = 0.5 * (lower + upper)
     half = 0.5 * (upper - lower).max() * scale
     half_sizes = half.expand(3).clone()
     if squeeze_axis is not None:
         half_sizes[squeeze_axis] = half / squeeze
     if not bool((half_sizes > 0).all()):
         raise InputError("vertices_canonical: all vertices coincide; the box would be empty")
-    return centre - half_sizes, centre + half_sizes
+    return center - half_sizes, center + half_sizes
 
 
 def grid_point_positions(
@@ -129,10 +129,10 @@ def grid_point_positions(
 
 
 def smooth_weights_grid(weights_grid: torch.Tensor, iterations: int) -> torch.Tensor:
-    """Blur a (J, D, H, W) weight grid with `iterations` 3x3x3 box filters, re-normalised.
+    """Blur a (J, D, H, W) weight grid with `iterations` 3x3x3 box filters, re-normalized.
 
     Replicate padding keeps the border voxels from being pulled towards zero; an average of
-    points of the probability simplex stays on it, and the re-normalisation removes float drift.
+    points of the probability simplex stays on it, and the re-normalization removes float drift.
     """
     if iterations <= 0:
         return weights_grid
@@ -212,7 +212,7 @@ def build_skinning_grid(
     return grid.contiguous().to(device)
 
 
-def _normalised_coordinates(
+def _normalized_coordinates(
     x: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor
 ) -> torch.Tensor:
     """Map canonical points (..., 3) to grid_sample's [-1, 1]^3 (x, y, z order = W, H, D)."""
@@ -235,7 +235,7 @@ def sample_grid(
     Returns:
         (P, C) in the dtype of `values`.
     """
-    coords = _normalised_coordinates(x.to(values.dtype), box_min, box_max)
+    coords = _normalized_coordinates(x.to(values.dtype), box_min, box_max)
     sampled = F.grid_sample(
         values.unsqueeze(0),
         coords.reshape(1, -1, 1, 1, 3),

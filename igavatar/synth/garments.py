@@ -37,14 +37,14 @@ COVERAGE_CHANNELS: tuple[str, ...] = ("top", "bottom", "hair", "shoes")
 REGIONS: tuple[str, ...] = ("skin",) + COVERAGE_CHANNELS
 REGION_PRIORITY: tuple[str, ...] = ("hair", "top", "bottom", "shoes")
 
-#: Reference standing height (metres) that the garment lengths below are written for; offsets are
+#: Reference standing height (meters) that the garment lengths below are written for; offsets are
 #: scaled by the subject's height over this, so a child's shirt is not 3 cm thick.
 REFERENCE_HEIGHT_M = 1.65
 
 
 @dataclass(frozen=True)
 class GarmentSpec:
-    """Thicknesses (metres, for a REFERENCE_HEIGHT_M tall subject) and extents of one outfit.
+    """Thicknesses (meters, for a REFERENCE_HEIGHT_M tall subject) and extents of one outfit.
 
     Attributes:
         top_offset: distance of the shirt/dress top from the torso.
@@ -102,11 +102,11 @@ class ClothedSubject:
     """The clothed rest-pose surface and what it needs to be posed and textured.
 
     Attributes:
-        vertices_canonical: (V, 3) float64 rest-pose (canonical) positions in metres.
+        vertices_canonical: (V, 3) float64 rest-pose (canonical) positions in meters.
         faces: (F, 3) int64, outward-facing, one closed 2-manifold surface.
         weights: (V, J) float32 skinning weights (rows sum to 1), the body's bones.
         coverage: (V, C) float32 in [0, 1], per COVERAGE_CHANNELS, for texturing.
-        offsets: (V,) float32 outward displacement from the body surface in metres.
+        offsets: (V,) float32 outward displacement from the body surface in meters.
         garment: the outfit name.
     """
 
@@ -355,7 +355,7 @@ def build_clothed_subject(
     """Dress a rest-pose Anny body as one closed surface.
 
     Args:
-        x_rest: (V, 3) rest-pose body vertices in metres (+Z up, face towards -Y).
+        x_rest: (V, 3) rest-pose body vertices in meters (+Z up, face towards -Y).
         faces: (F, 3) triangles; separate shells (eyes, teeth) are dropped.
         weights: (V, J) skinning weights of the body.
         bone_names: the J bone names (Anny's: 'upperarm01.L', 'head', ...).
@@ -480,7 +480,7 @@ def _skirt_shell(x_clothed: np.ndarray, bones: _Bones, spec: GarmentSpec, scale:
     s = (top_z - ring_z) / (top_z - hem_z)
     half_axes = np.maximum.accumulate(half_axes, axis=0)
     half_axes = half_axes * (1.0 + 0.06 * s[:, None]) + (-0.01 * scale + (spec.skirt_flare * scale + 0.01 * scale) * s**1.5)[:, None]
-    # The skirt hangs straight down: one centre for all rings (the hips').
+    # The skirt hangs straight down: one center for all rings (the hips').
     center = centers[: rings // 3].mean(axis=0)
     angle = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
     ring_xy = center + half_axes[:, None, :] * np.stack([np.cos(angle), np.sin(angle)], axis=1)[None]

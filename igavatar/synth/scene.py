@@ -4,7 +4,7 @@
     light = light_position(w2c)                                   # above and right of the camera
 
 World frame = Anny's: +Z up, the subject faces -Y at rest, its left is +X. Cameras are OpenCV
-(x right, y down, z forward), pixel centres at integer coordinates.
+(x right, y down, z forward), pixel centers at integer coordinates.
 """
 
 from __future__ import annotations
@@ -47,16 +47,16 @@ def frame_static_camera(
     view_direction: np.ndarray = np.array([0.0, 1.0, 0.0]),
     margin: float = 0.06,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A level pinhole camera `distance` metres from the centre of the points, zoomed to fit them all.
+    """A level pinhole camera `distance` meters from the center of the points, zoomed to fit them all.
 
     Args:
         x_world: (P, 3) every point that must be visible (e.g. all posed vertices of all frames).
         height, width: image size in pixels.
-        distance: horizontal distance from the camera to the centre of the points' bounding box.
+        distance: horizontal distance from the camera to the center of the points' bounding box.
         view_direction: horizontal viewing direction (default +Y: the camera faces the subject's front).
         margin: free border on each side, as a fraction of the image size.
     Returns:
-        K (3, 3) with square pixels and the principal point at the image centre, and w2c (4, 4).
+        K (3, 3) with square pixels and the principal point at the image center, and w2c (4, 4).
     """
     x_world = np.asarray(x_world, dtype=np.float64).reshape(-1, 3)
     low, high = x_world.min(axis=0), x_world.max(axis=0)

@@ -16,7 +16,7 @@ import torch
 from igavatar.body.rotations import matrix_to_axis_angle
 from igavatar.body.skeleton import Skeleton
 
-#: A static subject's frames must be rigid copies of the first to this many metres (RMS).
+#: A static subject's frames must be rigid copies of the first to this many meters (RMS).
 RIGID_TOLERANCE_M = 1e-4
 
 

@@ -50,12 +50,12 @@ def region_ids(coverage: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TextureLandmarks:
-    """Canonical-space anchors of the face features and the chest print (metres).
+    """Canonical-space anchors of the face features and the chest print (meters).
 
     Attributes:
-        eyes: (2, 3) eyeball centres (left, right).
+        eyes: (2, 3) eyeball centers (left, right).
         mouth: (3,) front-most point of the lips.
-        chest: (3,) centre of the chest print, on the torso's front.
+        chest: (3,) center of the chest print, on the torso's front.
         legs: (2, 2, 3) hip and ankle joint of the left and right leg (trouser stripes run along them).
         body_scale: standing height over 1.65 m; feature sizes (eyes, print) scale with it.
     """
@@ -104,7 +104,7 @@ def find_landmarks(
     if candidates.shape[0] == 0:
         raise BodyModelError("texture: found no lip vertices below the eyes; is this an Anny body?")
     mouth = candidates[np.argmin(candidates[:, 1])]
-    # Chest print: centred 0.22 body heights below the eyes, in front of the torso's midline.
+    # Chest print: centerd 0.22 body heights below the eyes, in front of the torso's midline.
     chest_z = eye_mid[2] - 0.22 * height
     torso = (np.abs(x_rest[:, 0] - eye_mid[0]) < 0.03 * height) & (np.abs(x_rest[:, 2] - chest_z) < 0.01 * height)
     chest_y = x_rest[torso, 1].min() if torso.any() else eye_mid[1]
@@ -139,11 +139,11 @@ class SolidTexture:
         style: one of TEXTURES.
         colors: region name -> (3,) base RGB in [0, 1].
         accents: region name -> (3,) second RGB of the pattern in that region.
-        stripe_period: shirt stripe period in metres.
-        check_size: trouser / plaid check size in metres.
+        stripe_period: shirt stripe period in meters.
+        check_size: trouser / plaid check size in meters.
         letters: (h, w) float32 print mask in [0, 1] projected onto the chest (empty for 'plain').
         text: the printed text.
-        print_half_width: half width of the print in metres (for a 1.65 m subject).
+        print_half_width: half width of the print in meters (for a 1.65 m subject).
         pinstripes: number of trouser pinstripes around each leg ('stripes' style).
         landmarks: where the face features and the print sit.
     """
@@ -163,7 +163,7 @@ class SolidTexture:
         """Surface color at canonical points.
 
         Args:
-            x_canonical: (P, 3) canonical positions in metres.
+            x_canonical: (P, 3) canonical positions in meters.
             regions: (P,) region indices into REGIONS (see `region_ids`).
         Returns:
             (P, 3) float64 RGB in [0, 1].

@@ -41,7 +41,7 @@ class TrainConfig:
     preset: str = "paper"
     """Name of the preset these values started from."""
     steps: int | None = None
-    """Optimisation steps; None = `epochs` x the number of training frames (one frame per step)."""
+    """Optimization steps; None = `epochs` x the number of training frames (one frame per step)."""
     epochs: int = 30
     """Epochs when `steps` is None (official: 30)."""
     rays_per_step: int = 4096
@@ -49,7 +49,7 @@ class TrainConfig:
     patch_size: int = 32
     """Edge of each ray patch in pixels (paper: four 32x32 patches = 4096 rays)."""
     patch_centres_in_mask: float = 0.9
-    """Fraction of patches centred on a mask pixel; the rest anywhere in the subject's box."""
+    """Fraction of patches centerd on a mask pixel; the rest anywhere in the subject's box."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2
@@ -77,7 +77,7 @@ class TrainConfig:
     reads) or "released" (squared differences averaged over every sample slot, as the authors'
     code: orders of magnitude weaker at the same weight)."""
     fd_eps: float = 1e-3
-    """Step (metres) of finite differences for the fd-eikonal / curvature ablations."""
+    """Step (meters) of finite differences for the fd-eikonal / curvature ablations."""
     curvature_warmup_steps: int = 200
     """Linear warm-up of the curvature ablation's weight."""
     hybrid_pe_frequencies: int = 6
@@ -85,7 +85,7 @@ class TrainConfig:
     hybrid_pe_anneal_fraction: float = 0.5
     """hybrid-pe ablation: fraction of training over which the hash levels open coarse-to-fine."""
     beta_final: float | None = None
-    """Cap on the learned VolSDF beta, annealed geometrically from beta_init to this value (metres)
+    """Cap on the learned VolSDF beta, annealed geometrically from beta_init to this value (meters)
     over `beta_anneal_fraction` of training; None = beta only learned (the paper). The rendered
     silhouette sits about 1-2 beta outside the SDF's zero level, so a beta that stalls near 1 cm
     in a short run shrinks the surface by that much (measured on the synthetic subject)."""
@@ -99,7 +99,7 @@ class TrainConfig:
     """Canonical points drawn uniformly in the box each step for the visual-hull free-space term
     (used when `loss_weights.free_space` > 0)."""
     hull_cell_size: float = 0.015
-    """Spacing in metres of the canonical grid on which the masks' visual hull is voted."""
+    """Spacing in meters of the canonical grid on which the masks' visual hull is voted."""
     hull_in_occupancy: bool = False
     """Mark cells inside the visual hull occupied, so that ray samples reach surface beyond the
     shape prior (loose garments, hair, a capture without a template)."""
@@ -114,7 +114,7 @@ class TrainConfig:
     shape_init_steps: int = 1000
     """Steps fitting the SDF to the template's SDF before photometric training (0 = sphere)."""
     shape_init_points: int = 16384
-    """Points per shape-initialisation step."""
+    """Points per shape-initialization step."""
     avatar: AvatarConfig = field(default_factory=AvatarConfig)
     """Network architecture and root finding."""
     validate_every: int = 500
@@ -131,12 +131,12 @@ class TrainConfig:
     """Seed of every random choice (deterministic on CPU)."""
 
     def resolved_steps(self, num_train_frames: int) -> int:
-        """The number of optimisation steps for a dataset with that many training frames."""
+        """The number of optimization steps for a dataset with that many training frames."""
         return self.steps if self.steps is not None else self.epochs * num_train_frames
 
 
 def _cpu_avatar() -> AvatarConfig:
-    # beta starts at 2 cm: the official 7.5 cm blurs every silhouette by several centimetres, and
+    # beta starts at 2 cm: the official 7.5 cm blurs every silhouette by several centimeters, and
     # in a short run the forearms and hands fade in the first 50 steps and never come back.
     return AvatarConfig(
         sdf=SDFFieldConfig(hash_grid=HashGridConfig(n_levels=12, log2_hashmap_size=17, base_resolution=16, finest_resolution=1024)),

@@ -57,13 +57,13 @@ def sample_patch_pixels(
     in_mask_fraction: float,
     generator: torch.Generator,
 ) -> torch.Tensor:
-    """Pixels of `n_patches` square patches, most centred on the subject.
+    """Pixels of `n_patches` square patches, most centerd on the subject.
 
     Args:
         mask_pixels: (M, 2) (x, y) of the subject's pixels (M >= 1).
         image_size: (H, W).
         n_patches, patch_size: patches and their edge in pixels.
-        in_mask_fraction: share of patches centred on a mask pixel; the others are centred
+        in_mask_fraction: share of patches centerd on a mask pixel; the others are centerd
             uniformly in the mask's bounding box grown by half its size (background context).
         generator: CPU RNG.
     Returns:
@@ -72,15 +72,15 @@ def sample_patch_pixels(
     height, width = image_size
     size = min(patch_size, height, width)
     n_in = int(round(n_patches * in_mask_fraction))
-    centres = mask_pixels[torch.randint(0, mask_pixels.shape[0], (n_in,), generator=generator)].float()
+    centers = mask_pixels[torch.randint(0, mask_pixels.shape[0], (n_in,), generator=generator)].float()
     if n_patches > n_in:
         lo, hi = mask_pixels.amin(0).float(), mask_pixels.amax(0).float()
         grow = 0.5 * (hi - lo)
         lo, hi = lo - grow, hi + grow
         u = torch.rand((n_patches - n_in, 2), generator=generator)
-        centres = torch.cat((centres, lo + u * (hi - lo)))
+        centers = torch.cat((centers, lo + u * (hi - lo)))
     limit = torch.tensor([width - size, height - size], dtype=torch.float32)
-    top_left = (centres - size // 2).round().clamp(min=torch.zeros(2), max=limit).long()
+    top_left = (centers - size // 2).round().clamp(min=torch.zeros(2), max=limit).long()
     offsets = torch.stack(
         torch.meshgrid(torch.arange(size), torch.arange(size), indexing="xy"), dim=-1
     ).reshape(-1, 2)

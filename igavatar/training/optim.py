@@ -1,4 +1,4 @@
-"""Adam for training and shape initialisation: PyTorch's fused kernel on the fast path.
+"""Adam for training and shape initialization: PyTorch's fused kernel on the fast path.
 
     optimizer = adam([{"params": table, "lr": 1e-2}, {"params": mlps, "lr": 1e-3}], betas=(0.9, 0.99), eps=1e-15)
 

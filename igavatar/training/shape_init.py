@@ -1,4 +1,4 @@
-"""Shape initialisation: fit the SDF field to the template's signed distance before photometric training.
+"""Shape initialization: fit the SDF field to the template's signed distance before photometric training.
 
     targets = template_sdf_samples(vertices, faces, box, n_points=200_000, generator=g)
     fit_sdf_to_template(sdf_field, targets, steps=300, batch=8192, generator=g)
@@ -26,7 +26,7 @@ from igavatar.training.optim import adam
 
 @dataclass(frozen=True)
 class SdfSamples:
-    """Points with their target signed distance (metres, positive outside)."""
+    """Points with their target signed distance (meters, positive outside)."""
 
     points: torch.Tensor  # (P, 3)
     sdf: torch.Tensor  # (P,)
@@ -47,7 +47,7 @@ def template_sdf_samples(
         vertices (V, 3), faces (F, 3): the canonical template (largest component is used).
         box: (2, 3) canonical box.
         n_points: points in total; near_fraction of them near the surface.
-        near_std: std (metres) of the offsets of the near-surface points.
+        near_std: std (meters) of the offsets of the near-surface points.
         seed: RNG seed.
     Returns:
         SdfSamples on CPU, float32.
@@ -80,7 +80,7 @@ def fit_sdf_to_template(
     seed: int = 0,
     on_step: Callable[[int, float], None] | None = None,
 ) -> float:
-    """Optimise `sdf_field` (in place) towards the targets; returns the final batch loss.
+    """Optimize `sdf_field` (in place) towards the targets; returns the final batch loss.
 
     The relative L1 term weights errors near the surface most, where the shape matters; the small
     eikonal term keeps the field a distance function away from it.

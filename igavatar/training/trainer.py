@@ -54,7 +54,7 @@ def psnr_from_mse(mse: float) -> float:
 
 
 class Trainer:
-    """Optimises an Avatar on TrainingData following a TrainConfig.
+    """Optimizes an Avatar on TrainingData following a TrainConfig.
 
     Args:
         config: the resolved TrainConfig.
@@ -140,10 +140,10 @@ class Trainer:
             self.canonical_grid.occupied |= self._hull_cells()
 
     def _hull_cells(self) -> torch.Tensor:
-        """(R, R, R) bool: occupancy cells whose centre the visual hull keeps (computed once)."""
+        """(R, R, R) bool: occupancy cells whose center the visual hull keeps (computed once)."""
         if self._hull_cells_cache is None:
-            centres = self.canonical_grid.cell_centres().reshape(-1, 3)
-            kept = self.hull.free_distance(centres.cpu()) <= 0
+            centers = self.canonical_grid.cell_centers().reshape(-1, 3)
+            kept = self.hull.free_distance(centers.cpu()) <= 0
             self._hull_cells_cache = kept.reshape(self.canonical_grid.occupied.shape).to(self.device)
         return self._hull_cells_cache
 
@@ -195,7 +195,7 @@ class Trainer:
         return terms
 
     def train_step(self) -> dict[str, float]:
-        """One optimisation step; returns the step's scalar logs."""
+        """One optimization step; returns the step's scalar logs."""
         started = time.perf_counter()
         config, data, device = self.config, self.data, self.device
         if self.step % config.occupancy_update_every == 0:

@@ -1,7 +1,7 @@
 """The masks' visual hull carried into canonical space, and the free-space bound it gives the SDF.
 
     hull = canonical_visual_hull(deformer, data, box, cell_size=0.015)
-    free = hull.free_distance(x_canonical)        # (P,) metres; 0 where the hull does not rule x out
+    free = hull.free_distance(x_canonical)        # (P,) meters; 0 where the hull does not rule x out
     loss = free_space_loss(sdf_at_x, free)        # hinge: sdf(x) >= distance to the hull
 
 Canonical space that no training ray reaches through root finding is otherwise never constrained
@@ -34,10 +34,10 @@ class CanonicalHull:
 
     Attributes:
         box_min, box_max: (3,) canonical box of the grid.
-        seen: (D, H, W) int32 training views in which each cell centre projects into the image.
+        seen: (D, H, W) int32 training views in which each cell center projects into the image.
         inside: (D, H, W) int32 views in which it falls inside the (slightly dilated) mask.
         free: (D, H, W) bool cells that at least `min_outside` views see as background.
-        free_distance_grid: (D, H, W) float32 metres from each free cell to the nearest non-free
+        free_distance_grid: (D, H, W) float32 meters from each free cell to the nearest non-free
             cell (0 for non-free cells): a lower bound of the true SDF there.
     Index order D<->z, H<->y, W<->x (as the skinning grid and `grid_sample`).
     """
@@ -55,15 +55,15 @@ class CanonicalHull:
         return float((~self.free).float().mean())
 
     def free_distance(self, x_canonical: torch.Tensor) -> torch.Tensor:
-        """(P, 3) canonical points -> (P,) lower bound of the SDF (metres; 0 = no bound).
+        """(P, 3) canonical points -> (P,) lower bound of the SDF (meters; 0 = no bound).
 
         Trilinear in the grid of distances; points outside the box get 0 (unconstrained).
         """
         grid = self.free_distance_grid.to(x_canonical.device)
         lo, hi = self.box_min.to(x_canonical), self.box_max.to(x_canonical)
-        normalised = (x_canonical - lo) / (hi - lo) * 2.0 - 1.0
+        normalized = (x_canonical - lo) / (hi - lo) * 2.0 - 1.0
         value = F.grid_sample(
-            grid[None, None], normalised[None, None, None], mode="bilinear", padding_mode="zeros", align_corners=True
+            grid[None, None], normalized[None, None, None], mode="bilinear", padding_mode="zeros", align_corners=True
         )
         return value.reshape(-1)
 
@@ -86,7 +86,7 @@ def canonical_visual_hull(
         deformer: the avatar's deformer (forward LBS through its skinning grid).
         data: training frames (masks, cameras, bone transforms); only `train_indices` vote.
         box: (2, 3) canonical box of the grid (the SDF's box).
-        cell_size: grid spacing in metres.
+        cell_size: grid spacing in meters.
         max_views: at most this many training frames vote (evenly spaced), which bounds the cost.
         mask_dilation_px, min_outside_fraction, min_outside, chunk_size: see
             igavatar.capture.visual_hull.vote_masks and free_points.
@@ -127,7 +127,7 @@ def free_space_loss(sdf: torch.Tensor, free_distance: torch.Tensor, slack: float
     Args:
         sdf: (P,) predicted signed distance at the points.
         free_distance: (P,) the hull's bound there (0 = unconstrained; such points are left out).
-        slack: metres subtracted from the bound (tolerance for the grid's resolution).
+        slack: meters subtracted from the bound (tolerance for the grid's resolution).
     Returns:
         scalar tensor (0 when no point is constrained).
     """

@@ -17,7 +17,7 @@ charged exclusively (a call nested in another counts for its own component only)
     renderer         posed occupancy, sampling, compositing
     losses           the loss terms
     backward         one backward pass through everything above
-    optimiser        Adam (torch's fused kernel on the fast path, its per-tensor loop in the reference)
+    optimizer        Adam (torch's fused kernel on the fast path, its per-tensor loop in the reference)
     occupancy        the canonical occupancy grid's periodic update (its field queries excluded)
     other            the rest of the step (ray generation, batching, bookkeeping)
 
@@ -62,7 +62,7 @@ from stages.resources import peak_ram_bytes, tune_host_allocator  # noqa: E402
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
 from igavatar.avatar.model import build_avatar  # noqa: E402
 
-COMPONENTS = ("root finding", "hash grid", "MLPs", "renderer", "losses", "backward", "optimiser", "occupancy", "other")
+COMPONENTS = ("root finding", "hash grid", "MLPs", "renderer", "losses", "backward", "optimizer", "occupancy", "other")
 
 
 class Profiler:
@@ -111,7 +111,7 @@ def instrument(profiler: Profiler, trainer: Trainer) -> None:
         profiler.wrap(avatar.sdf_field.encoding, "forward", "hash grid")
     profiler.wrap(avatar.color_field, "forward", "MLPs")
     profiler.wrap(avatar.nonrigid, "forward", "MLPs")
-    profiler.wrap(trainer.optimizer, "step", "optimiser")
+    profiler.wrap(trainer.optimizer, "step", "optimizer")
     profiler.wrap(trainer, "_update_occupancy", "occupancy")
     profiler.wrap(trainer, "_regularizer_terms", "losses")
 
@@ -225,7 +225,7 @@ def train_timings(dataset: Path, work: Path, steps: int | None) -> dict:
     for name, flag in (("reference", "0"), ("fast", "1")):
         env = dict(os.environ, IGAVATAR_KERNELS=flag)
         out = work / f"train-{name}"
-        # From scratch: a model left here would hand its cached shape initialisation to this run.
+        # From scratch: a model left here would hand its cached shape initialization to this run.
         shutil.rmtree(out, ignore_errors=True)
         args = ["train", "--dataset", str(dataset), "--out", str(out), "--preset", "cpu", "--device", "cpu", "--quiet"]
         if steps is not None:
@@ -243,7 +243,7 @@ def print_train_timings(rows: dict) -> None:
     print(f"{'':<30} {'reference':>10} {'fast':>8} {'speed-up':>9}")
     lines = [("training steps, s", ref["train_seconds"], fast["train_seconds"])]
     if ref.get("timings") and fast.get("timings"):
-        lines += [("shape initialisation, s", ref["timings"]["shape_init_s"], fast["timings"]["shape_init_s"]),
+        lines += [("shape initialization, s", ref["timings"]["shape_init_s"], fast["timings"]["shape_init_s"]),
                   ("whole stage (its own timer), s", ref["timings"]["total_s"], fast["timings"]["total_s"])]
     lines.append(("process wall time, s", ref["wall_s"], fast["wall_s"]))
     for label, r, f in lines:

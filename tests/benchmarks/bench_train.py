@@ -6,7 +6,7 @@
 Prints two tables: (1) one full training run of the chosen preset: steps, wall time, it/s,
 rays/s, samples/s, peak RAM, validation PSNR; (2) the per-step cost of every `--regularizer`
 relative to `none`, measured side by side in one process (round-robin over the variants, so
-machine noise hits them alike), from the same shape-initialised weights. Not a test: numbers are
+machine noise hits them alike), from the same shape-initialized weights. Not a test: numbers are
 measured, never asserted.
 """
 

@@ -126,14 +126,14 @@ if render_arg == "render":
     corners = [mesh.evaluated_get(depsgraph).matrix_world @ Vector(c) for c in mesh.evaluated_get(depsgraph).bound_box]
     low = Vector([min(c[i] for c in corners) for i in range(3)])
     high = Vector([max(c[i] for c in corners) for i in range(3)])
-    centre = (low + high) / 2
+    center = (low + high) / 2
     height = high.z - low.z
     camera_data = bpy.data.cameras.new("camera")
     camera_data.lens = 50
     camera = bpy.data.objects.new("camera", camera_data)
     scene.collection.objects.link(camera)
     # The subject faces -Y in Blender (glTF +Z forward); the camera looks along +Y at it.
-    camera.location = (centre.x, centre.y - 2.2 * height, centre.z)
+    camera.location = (center.x, center.y - 2.2 * height, center.z)
     camera.rotation_euler = (math.pi / 2, 0.0, 0.0)
     scene.camera = camera
     sun_data = bpy.data.lights.new("sun", type="SUN")
