@@ -132,7 +132,7 @@ def resolve_dataset(model: ModelManifest, override: Path | None) -> Path:
 
 
 def _check_compatible(model: ModelArtifact, dataset: DatasetArtifact) -> None:
-    for key, ours, theirs in (("joint_names", model.joint_names, dataset.joint_names), ("pose_dim", model.pose_dim, dataset.pose_dim)):
+    for key, ours, theirs in (("joint_names", model.joint_names, dataset.recorded_joint_names), ("pose_dim", model.pose_dim, dataset.pose_dim)):
         if ours != theirs:
             raise InputError(
                 f"--dataset {dataset.path}: its {key} differs from the model's ({model.path}); "

@@ -20,8 +20,8 @@ FORBIDDEN_SUBPACKAGES = {"igavatar/render": {"igavatar.model"}}
 # The library's packages, bottom up (DESIGN.md, "Layers"): a package imports only packages of a
 # lower level (and `igavatar.errors` / `igavatar.__init__`, level 0).
 LIBRARY_LEVELS: tuple[tuple[str, ...], ...] = (
-    ("artifacts", "geometry", "kernels", "render"),
-    ("body",),
+    ("artifacts", "geometry", "kernels"),
+    ("body", "render"),
     ("skinning", "mesh", "metrics", "synth"),
     ("capture", "model"),
     ("training",),

@@ -18,6 +18,8 @@ import numpy as np
 import torch
 
 from igavatar.artifacts.manifest import read_artifact
+from igavatar.artifacts.npz import read_npz
+from igavatar.avatar.facts import ManifestFacts
 from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
 from igavatar.capture.images import resize_image, resize_mask
 from igavatar.errors import ArtifactError, InputError
@@ -71,34 +73,17 @@ class DatasetFrames:
 
 
 @dataclass(frozen=True, eq=False)
-class DatasetArtifact:
+class DatasetArtifact(ManifestFacts):
     """A checked dataset artifact: its directory, manifest and subject; frames read on demand."""
 
     path: Path
     manifest: dict
 
     @property
-    def data(self) -> dict:
-        return self.manifest["data"]
-
-    @property
-    def body_model(self) -> str:
-        return str(self.data["body_model"])
-
-    @property
     def image_size(self) -> tuple[int, int]:
         """(H, W) of the dataset's images."""
         height, width = (int(v) for v in self.data["image_size"])
         return height, width
-
-    @property
-    def pose_dim(self) -> int:
-        """P, the size of a frame's pose conditioning."""
-        return int(self.data["pose_dim"])
-
-    @property
-    def joint_names(self) -> list[str]:
-        return list(self.data["joint_names"])
 
     @property
     def splits(self) -> dict[str, list[str]]:
@@ -134,14 +119,7 @@ class DatasetArtifact:
         """Every frame of frames.npz; ArtifactError naming the file and missing keys."""
         path = self.path / FRAMES_FILE
         keys = ("frame_names", *(f.name for f in fields(DatasetFrames) if f.name != "names"))
-        try:
-            with np.load(path) as stored:
-                missing = [key for key in keys if key not in stored.files]
-                if missing:
-                    raise ArtifactError(f"{path}: keys {', '.join(missing)} are missing; re-run `igavatar preprocess`")
-                arrays = {key: stored[key] for key in keys}
-        except (OSError, ValueError) as error:
-            raise ArtifactError(f"{path}: cannot read the frames ({error}); re-run `igavatar preprocess`") from error
+        arrays = read_npz(path, keys, "the frames")
         names = tuple(str(n) for n in arrays.pop("frame_names"))
         return DatasetFrames(names=names, **arrays)
 

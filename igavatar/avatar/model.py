@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from igavatar.artifacts.manifest import read_artifact
+from igavatar.avatar.facts import ManifestFacts
 from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
 from igavatar.body.motions import SKELETON_KINDS, body_to_world
 from igavatar.body.skeleton import Skeleton
@@ -63,7 +64,7 @@ def read_model_manifest(path: Path, check_hashes: bool = True) -> ModelManifest:
 
 
 @dataclass(frozen=True, eq=False)
-class ModelArtifact:
+class ModelArtifact(ManifestFacts):
     """A trained avatar with everything needed to pose and render it.
 
     Attributes:
@@ -80,18 +81,6 @@ class ModelArtifact:
     avatar: Avatar
     canonical_grid: OccupancyGrid
     subject: SubjectArrays
-
-    @property
-    def data(self) -> dict:
-        return self.manifest["data"]
-
-    @property
-    def body_model(self) -> str:
-        return str(self.data["body_model"])
-
-    @property
-    def pose_dim(self) -> int:
-        return int(self.data["pose_dim"])
 
     @property
     def phenotype(self) -> dict | None:

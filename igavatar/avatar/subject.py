@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from igavatar.artifacts.npz import read_npz
 from igavatar.body.skeleton import Skeleton
-from igavatar.errors import ArtifactError
 
 SUBJECT_FILE = "subject.npz"
 _KEYS = ("parents", "rest_joints", "canonical_joints", "canonical_rotations", "joint_names", "init_bones",
@@ -46,15 +46,7 @@ class SubjectArrays:
     @classmethod
     def read(cls, path: Path) -> SubjectArrays:
         """Read subject.npz; ArtifactError naming the file and the missing keys."""
-        path = Path(path)
-        try:
-            with np.load(path) as stored:
-                missing = [key for key in _KEYS if key not in stored.files]
-                if missing:
-                    raise ArtifactError(f"{path}: keys {', '.join(missing)} are missing; re-run `igavatar preprocess`")
-                arrays = {key: stored[key] for key in _KEYS}
-        except (OSError, ValueError) as error:
-            raise ArtifactError(f"{path}: cannot read the subject arrays ({error}); re-run `igavatar preprocess`") from error
+        arrays: dict = read_npz(Path(path), _KEYS, "the subject arrays")
         arrays["joint_names"] = tuple(str(n) for n in arrays["joint_names"])
         return cls(**arrays)
 

@@ -44,6 +44,7 @@ from torch import nn
 
 from igavatar import kernels
 from igavatar.errors import InputError
+from igavatar.geometry.boxes import check_box
 
 # Instant-NGP / tiny-cuda-nn spatial-hash primes for the x, y, z axes.
 HASH_PRIMES: tuple[int, int, int] = (1, 2654435761, 805459861)
@@ -124,21 +125,6 @@ class HashGridConfig:
                 for n, dense in zip(self.level_resolutions(), self.level_is_dense())]
 
 
-def _check_box(box_min: torch.Tensor, box_max: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    box_min = torch.as_tensor(box_min, dtype=torch.float32)
-    box_max = torch.as_tensor(box_max, dtype=torch.float32)
-    if box_min.shape != (3,) or box_max.shape != (3,):
-        raise InputError(
-            f"hash grid box: box_min and box_max must have shape (3,), got {tuple(box_min.shape)} "
-            f"and {tuple(box_max.shape)}"
-        )
-    if not bool(torch.all(box_max > box_min)):
-        raise InputError(
-            f"hash grid box: box_max {box_max.tolist()} must exceed box_min {box_min.tolist()} on every axis"
-        )
-    return box_min, box_max
-
-
 class HashGridEncoding(nn.Module):
     """Multiresolution hash encoding of canonical points, output ``(P, L * F)``, level-major.
 
@@ -149,7 +135,9 @@ class HashGridEncoding(nn.Module):
     def __init__(self, config: HashGridConfig, box_min: torch.Tensor, box_max: torch.Tensor) -> None:
         super().__init__()
         self.config = config
-        box_min, box_max = _check_box(box_min, box_max)
+        box_min = torch.as_tensor(box_min, dtype=torch.float32)
+        box_max = torch.as_tensor(box_max, dtype=torch.float32)
+        check_box(box_min, box_max, "hash grid box")
         self.register_buffer("box_min", box_min.clone())
         self.register_buffer("box_max", box_max.clone())
 

@@ -30,6 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from igavatar.geometry.boxes import check_box
+
 __all__ = ["DensityFn", "OccupancyGrid", "max_filter_3d"]
 
 DensityFn = Callable[[Tensor], Tensor]
@@ -65,17 +67,6 @@ def max_filter_3d(values: Tensor, radius: int = 1) -> Tensor:
     return out
 
 
-def _check_box(box_min: Tensor, box_max: Tensor, where: str) -> None:
-    if box_min.shape != (3,) or box_max.shape != (3,):
-        raise ValueError(
-            f"{where}: box_min {tuple(box_min.shape)} and box_max {tuple(box_max.shape)} must be (3,)"
-        )
-    if not bool((box_max > box_min).all()):
-        raise ValueError(
-            f"{where}: box_max {box_max.tolist()} must exceed box_min {box_min.tolist()} on every axis"
-        )
-
-
 class OccupancyGrid(nn.Module):
     """A resolution^3 occupancy grid over an axis-aligned box (buffers move with ``.to()``).
 
@@ -107,7 +98,7 @@ class OccupancyGrid(nn.Module):
         super().__init__()
         box_min = torch.as_tensor(box_min, dtype=torch.float32)
         box_max = torch.as_tensor(box_max, dtype=torch.float32).to(box_min.device)
-        _check_box(box_min, box_max, "OccupancyGrid")
+        check_box(box_min, box_max, "OccupancyGrid", ValueError)
         if resolution < 1:
             raise ValueError(f"OccupancyGrid: resolution must be >= 1, got {resolution}")
         if not 0.0 <= decay <= 1.0:
@@ -217,7 +208,7 @@ class OccupancyGrid(nn.Module):
             raise ValueError(f"OccupancyGrid.rebuild: num_passes must be >= 1, got {num_passes}")
         box_min = torch.as_tensor(box_min).to(self.box_min)
         box_max = torch.as_tensor(box_max).to(self.box_min)
-        _check_box(box_min, box_max, "OccupancyGrid.rebuild")
+        check_box(box_min, box_max, "OccupancyGrid.rebuild", ValueError)
         self.box_min.copy_(box_min)
         self.box_max.copy_(box_max)
         self.cached.zero_()
@@ -262,7 +253,7 @@ class OccupancyGrid(nn.Module):
     def _move_box(self, box_min: Tensor, box_max: Tensor) -> None:
         box_min = torch.as_tensor(box_min).to(self.box_min)
         box_max = torch.as_tensor(box_max).to(self.box_min)
-        _check_box(box_min, box_max, "OccupancyGrid.update")
+        check_box(box_min, box_max, "OccupancyGrid.update", ValueError)
         if torch.equal(box_min, self.box_min) and torch.equal(box_max, self.box_max):
             return
         old_min, old_max = self.box_min.clone(), self.box_max.clone()

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from igavatar.errors import InputError
+from igavatar.geometry.boxes import check_box
 
 __all__ = [
     "canonical_grid_box",
@@ -50,18 +51,6 @@ def _as_tensor(value: torch.Tensor | np.ndarray, name: str) -> torch.Tensor:
 def _check_points(x: torch.Tensor, name: str) -> None:
     if x.ndim != 2 or x.shape[1] != 3:
         raise InputError(f"{name}: shape {tuple(x.shape)}, expected (P, 3)")
-
-
-def _check_box(box_min: torch.Tensor, box_max: torch.Tensor) -> None:
-    if box_min.shape != (3,) or box_max.shape != (3,):
-        raise InputError(
-            f"box_min/box_max: shapes {tuple(box_min.shape)}/{tuple(box_max.shape)}, expected (3,)"
-        )
-    if not bool((box_max > box_min).all()):
-        raise InputError(
-            f"box_min/box_max: box_max {box_max.tolist()} must exceed box_min {box_min.tolist()} "
-            "on every axis"
-        )
 
 
 def canonical_grid_box(
@@ -180,7 +169,7 @@ def build_skinning_grid(
         )
     if vertices.shape[0] == 0:
         raise InputError("vertices_canonical: shape (0, 3), expected at least one vertex")
-    _check_box(box_min, box_max)
+    check_box(box_min, box_max, "box_min/box_max")
     if k < 1:
         raise InputError(f"k: {k}, expected >= 1")
     if bool((vertex_weights < 0).any()):
