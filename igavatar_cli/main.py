@@ -177,7 +177,7 @@ def preprocess(
         str, typer.Option(help="Skinning-weight grid D,H,W (z,y,x) in canonical space.")
     ] = "64,16,64",
     weight_smoothing: Annotated[Optional[int], typer.Option(
-        help="Blur passes over the skinning-weight grid [default: 30 for a body model's template, 2 for a bare "
+        help="Blur passes over the skinning-weight grid [default: 15 for a body model's template, 2 for a bare "
              "skeleton's bone weights]; fewer keeps the weights sharp where limbs meet.", min=0)] = None,
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory [default: ~/.cache/anny].")] = None,
     smpl_model: Annotated[

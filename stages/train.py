@@ -308,6 +308,17 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
     }
 
 
+def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, shape_state: dict, log: _TrainingLog,
+                       validation: dict) -> None:
+    """weights.npz, subject.npz (the dataset's), shape_init.npz, training_log.csv and validation/*.png."""
+    save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
+    shutil.copyfile(dataset.path / "subject.npz", tmp / "subject.npz")
+    save_state(tmp / "shape_init.npz", shape_state)
+    shutil.copyfile(log.path, tmp / "training_log.csv")
+    for name, (image, _) in validation.items():
+        _write_png(tmp / "validation" / f"{name}.png", image)
+
+
 def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     clock = StageClock()
     dataset = read_dataset(Path(options.dataset))
@@ -347,22 +358,17 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
                                 "trainer": trainer.state_dict()})
         log.save()
 
-    validation_frames = [int(data.train_indices[0])]
-    test_indices = [i for i, name in enumerate(data.frame_names) if name in dataset.splits.get("test", [])]
-    validation_frames += test_indices[:1]
+    # The first training frame and, when there is one, the first test frame.
+    test_frames = [i for i, name in enumerate(data.frame_names) if name in dataset.splits.get("test", [])]
+    validation_frames = [int(data.train_indices[0]), *test_frames[:1]]
     last = _train_loop(trainer, config, log, save_checkpoint, validation_frames[0], work, progress)
     clock.add("train_s", trainer.seconds)
     with clock("validation_render_s"):
         validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples)
                       for i in validation_frames}
+    data_json = _model_data(dataset, trainer, last, validation, config)
     with atomic_directory(out, kind="model", inputs=[dataset.path]) as tmp:
-        save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
-        shutil.copyfile(dataset.path / "subject.npz", tmp / "subject.npz")
-        save_state(tmp / "shape_init.npz", shape_state)
-        shutil.copyfile(log.path, tmp / "training_log.csv")
-        for name, (image, _) in validation.items():
-            _write_png(tmp / "validation" / f"{name}.png", image)
-        data_json = _model_data(dataset, trainer, last, validation, config)
+        _write_model_files(tmp, dataset, trainer, shape_state, log, validation)
         build_manifest(
             "model", tmp, stage="train", config=config_json, inputs=[InputRecord(dataset.path, "dataset")],
             data=data_json, seed=config.seed, device=str(device), timings=clock.finish(),

@@ -157,3 +157,17 @@ def test_unknown_body_model_via_cli(small_run, cli_runner, tmp_path):
     result = cli_runner.invoke(app, ["preprocess", "--capture", str(capture), "--out", str(tmp_path / "d")])
     assert result.exit_code == 2 and "unknown body model 'star'" in result.output
     assert "Traceback" not in result.output
+
+
+def test_weight_smoothing_shapes_the_grid_and_is_part_of_the_dataset_key(small_run, tmp_path):
+    sharp = PreprocessOptions(capture=small_run / "capture", out=tmp_path / "dataset", max_size=64, weight_smoothing=0)
+    run_preprocess(sharp)
+    assert read_artifact(tmp_path / "dataset", expected="dataset")["config"]["weight_smoothing"] == 0
+    with np.load(tmp_path / "dataset" / "subject.npz") as stored:
+        sharp_grid = stored["skinning_grid"]
+    # The default passes are another dataset: not skipped as unchanged, and a smoother grid.
+    default = run_preprocess(PreprocessOptions(**{**sharp.__dict__, "weight_smoothing": None}))
+    assert "skipped" not in default
+    with np.load(tmp_path / "dataset" / "subject.npz") as stored:
+        smooth_grid = stored["skinning_grid"]
+    assert sharp_grid.max(axis=0).mean() > smooth_grid.max(axis=0).mean()

@@ -50,14 +50,14 @@ EXTRA_SUBJECTS: dict[str, list[str]] = {
     **{f"{name}-bare": [*args, "--skeleton", "bare"] for name, args in SUBJECTS.items()},
     "static-root": ["--seed", "3", "--skeleton", "root", "--test-frames", "0", "--texture", "checker"],
     **{f"{name}-hull": args for name, args in SUBJECTS.items()},
-    **{f"{name}-sharp{n}": args for name, args in SUBJECTS.items() for n in (2, 8, 15)},
+    **{f"{name}-sharp{n}": args for name, args in SUBJECTS.items() for n in (2, 8, 15, 30)},
 }
 #: Preprocess options of a subject (default: none): the `*-hull` subjects take the masks' visual
 #: hull as the shape prior instead of the naked template.
 PREPROCESS_ARGS: dict[str, list[str]] = {
     **{f"{name}-hull": ["--shape-prior", "visual-hull"] for name in SUBJECTS},
-    # The template's skinning weights blurred by n passes instead of 30.
-    **{f"{name}-sharp{n}": ["--weight-smoothing", str(n)] for name in SUBJECTS for n in (2, 8, 15)},
+    # The template's skinning weights blurred by n passes (the default is 15; 30 was InstantAvatar's and ours before).
+    **{f"{name}-sharp{n}": ["--weight-smoothing", str(n)] for name in SUBJECTS for n in (2, 8, 15, 30)},
 }
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
