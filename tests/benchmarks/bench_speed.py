@@ -52,15 +52,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_train import ensure_dataset  # noqa: E402
 
-import igavatar.training.trainer as trainer_module  # noqa: E402
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
-from igavatar.kernels import kernel_status, load_kernel, set_kernels_enabled  # noqa: E402
-from igavatar.training.checkpoint import load_state  # noqa: E402
-from igavatar.training.config import preset, with_overrides  # noqa: E402
-from igavatar.training.trainer import Trainer  # noqa: E402
-from stages.resources import peak_ram_bytes, tune_host_allocator  # noqa: E402
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
 from igavatar.avatar.model import build_avatar  # noqa: E402
+from igavatar.kernels import kernel_status, load_kernel, set_kernels_enabled  # noqa: E402
+import igavatar.model.posed as posed_module  # noqa: E402
+from igavatar.training.checkpoint import load_state  # noqa: E402
+from igavatar.training.config import preset, with_overrides  # noqa: E402
+import igavatar.training.trainer as trainer_module  # noqa: E402
+from igavatar.training.trainer import Trainer  # noqa: E402
+from stages.resources import peak_ram_bytes, tune_host_allocator  # noqa: E402
 
 COMPONENTS = ("root finding", "hash grid", "MLPs", "renderer", "losses", "backward", "optimizer", "occupancy", "other")
 
@@ -118,9 +119,11 @@ def instrument(profiler: Profiler, trainer: Trainer) -> None:
 
 def instrument_functions(profiler: Profiler) -> None:
     """Timers on the module-level functions the trainer calls, and on backward."""
-    for name, label in (("render_rays", "renderer"), ("posed_occupancy", "renderer"), ("sample_along_rays", "renderer"),
+    for name, label in (("render_rays", "renderer"), ("sample_along_rays", "renderer"),
                         ("rgb_loss", "losses"), ("alpha_loss", "losses")):
         profiler.wrap(trainer_module, name, label)
+    # The posed occupancy grid is built through PosedAvatar.occupancy.
+    profiler.wrap(posed_module, "posed_occupancy", "renderer")
     profiler.wrap(torch.Tensor, "backward", "backward")
 
 

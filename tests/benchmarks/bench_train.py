@@ -26,13 +26,13 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
+from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+from igavatar.avatar.model import build_avatar  # noqa: E402
 from igavatar.training.config import REGULARIZERS, preset, with_overrides  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
 from stages.preprocess import PreprocessOptions, run_preprocess  # noqa: E402
 from stages.resources import peak_ram_bytes  # noqa: E402
 from stages.synth import SynthOptions, run_synth  # noqa: E402
-from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
-from igavatar.avatar.model import build_avatar  # noqa: E402
 from stages.train import TrainOptions, run_train  # noqa: E402
 
 

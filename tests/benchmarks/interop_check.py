@@ -37,11 +37,11 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
-from igavatar.mesh.gltf import read_rigged_glb  # noqa: E402
-from igavatar.mesh.texture import sample_texture  # noqa: E402
 from igavatar.geometry.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values  # noqa: E402
-from stages.animate import AnimateOptions, run_animate  # noqa: E402
+from igavatar.mesh.gltf import read_rigged_glb  # noqa: E402
 from igavatar.mesh.maps import frontal_camera  # noqa: E402
+from igavatar.mesh.texture import sample_texture  # noqa: E402
+from stages.animate import AnimateOptions, run_animate  # noqa: E402
 from stages.export import ExportOptions, run_export  # noqa: E402
 
 PROBE = Path(__file__).with_name("blender_probe.py")
