@@ -319,6 +319,16 @@ def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, sh
         _write_png(tmp / "validation" / f"{name}.png", image)
 
 
+def _resume(trainer: Trainer, checkpoint: Path, run_key: str, config_json: dict, dataset_sha: str,
+            progress: ProgressSink) -> None:
+    """Continue from the checkpoint of an interrupted run with the same options and dataset."""
+    state = load_state(checkpoint)
+    if state.get("run_key") != run_key:
+        raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
+    trainer.load_state_dict(state["trainer"])
+    progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
+
+
 def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     clock = StageClock()
     dataset = read_dataset(Path(options.dataset))
@@ -346,11 +356,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     save_state(work / "shape_init.npz", shape_state)
     trainer = Trainer(config, data, avatar, device)
     if options.resume:
-        state = load_state(checkpoint)
-        if state.get("run_key") != run_key:
-            raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
-        trainer.load_state_dict(state["trainer"])
-        progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
+        _resume(trainer, checkpoint, run_key, config_json, dataset_sha, progress)
     log = _TrainingLog.open(work / "training_log.csv", options.resume)
 
     def save_checkpoint() -> None:
