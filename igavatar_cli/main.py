@@ -129,7 +129,7 @@ def _not_available(stage: str, issue_hint: str) -> None:
 @app.command()
 @user_errors
 def synth(
-    out: Annotated[Optional[Path], typer.Option(help="Capture directory to write [default: RUN_DIR/capture].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Capture directory to write \\[default: RUN_DIR/capture].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     resolution: Annotated[int, typer.Option(help="Image height and width in pixels.", min=32, max=4096)] = 512,
     train_frames: Annotated[int, typer.Option(help="Frames of the 360-degree turn in A-pose (training split).", min=1)] = 100,
@@ -146,7 +146,7 @@ def synth(
     skeleton: Annotated[str, typer.Option(
         help="How the poses are written: anny (the body model), bare (its joints as a bare skeleton, no template) "
              "or root (a static subject: one root joint, held still while it turns; needs --test-frames 0).")] = "anny",
-    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory [default: ~/.cache/anny].")] = None,
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
     force: Annotated[bool, typer.Option(help="Redo even if an identical capture exists.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
@@ -168,8 +168,8 @@ def synth(
 @app.command()
 @user_errors
 def preprocess(
-    capture: Annotated[Optional[Path], typer.Option(help="Capture directory [default: RUN_DIR/capture].")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Dataset directory to write [default: RUN_DIR/dataset].")] = None,
+    capture: Annotated[Optional[Path], typer.Option(help="Capture directory \\[default: RUN_DIR/capture].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Dataset directory to write \\[default: RUN_DIR/dataset].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     input_format: Annotated[str, typer.Option("--format", help="Input layout: auto (detect), capture-v1, peoplesnapshot, xhumans or humannerf.")] = "auto",
     max_size: Annotated[int, typer.Option(help="Resize images so the longer side is at most this many pixels.", min=16)] = 512,
@@ -177,9 +177,9 @@ def preprocess(
         str, typer.Option(help="Skinning-weight grid D,H,W (z,y,x) in canonical space.")
     ] = "64,16,64",
     weight_smoothing: Annotated[Optional[int], typer.Option(
-        help="Blur passes over the skinning-weight grid [default: 15 for a body model's template, 2 for a bare "
+        help="Blur passes over the skinning-weight grid \\[default: 15 for a body model's template, 2 for a bare "
              "skeleton's bone weights]; fewer keeps the weights sharp where limbs meet.", min=0)] = None,
-    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory [default: ~/.cache/anny].")] = None,
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
     smpl_model: Annotated[
         Optional[Path],
         typer.Option(
@@ -214,12 +214,12 @@ def preprocess(
 @app.command()
 @user_errors
 def train(
-    dataset: Annotated[Optional[Path], typer.Option(help="Dataset directory [default: RUN_DIR/dataset].")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Model directory to write [default: RUN_DIR/model].")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(help="Dataset directory \\[default: RUN_DIR/dataset].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Model directory to write \\[default: RUN_DIR/model].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     preset: Annotated[str, typer.Option(help="paper (GPU, the paper's settings), cpu (~10 min on 2 cores) or tiny (tests).")] = "cpu",
-    steps: Annotated[Optional[int], typer.Option(help="Optimization steps [default: the preset's].")] = None,
-    rays: Annotated[Optional[int], typer.Option("--rays", help="Rays per step [default: the preset's].")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Optimization steps \\[default: the preset's].")] = None,
+    rays: Annotated[Optional[int], typer.Option("--rays", help="Rays per step \\[default: the preset's].")] = None,
     samples: Annotated[Optional[int], typer.Option("--samples", help="Samples per ray before empty-space skipping.")] = None,
     regularizer: Annotated[
         Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe.")
@@ -231,9 +231,9 @@ def train(
     smooth_form: Annotated[
         Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")
     ] = None,
-    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts [default: the preset's].")] = None,
-    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~2 beta outside the surface, so a smaller cap means less inward bias [default: the preset's].")] = None,
-    free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) [default: the preset's].")] = None,
+    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts \\[default: the preset's].")] = None,
+    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~2 beta outside the surface, so a smaller cap means less inward bias \\[default: the preset's].")] = None,
+    free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
     ] = None,
@@ -263,8 +263,8 @@ def train(
 @app.command()
 @user_errors
 def export(
-    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\[default: RUN_DIR/mesh].")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\\\[default: RUN_DIR/model].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\\\[default: RUN_DIR/mesh].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colors), glb (rigged, Y-up; with --pose animated).")] = "ply,obj,glb",
     resolution: Annotated[
@@ -295,7 +295,7 @@ def export(
     exr: Annotated[bool, typer.Option(help="Write depth and normal maps (OpenEXR) of frontal views of each mesh.")] = False,
     exr_size: Annotated[int, typer.Option(help="Size of the EXR maps in pixels.", min=8)] = 512,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
-    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\\\[default: ~/.cache/anny].")] = None,
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
@@ -323,27 +323,27 @@ def animate(
     motion_arg: Annotated[
         Optional[str], typer.Argument(metavar="[MOTION]", help="Procedural motion (walk, turn, arm_raise, squat, turntable), a pose .npz (Anny, SMPL, AMASS, skeleton), a capture directory or a dataset.")
     ] = None,
-    motion: Annotated[Optional[str], typer.Option("--motion", help="Same as MOTION \\[default: walk].")] = None,
-    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Animation directory to write \\[default: RUN_DIR/animation].")] = None,
+    motion: Annotated[Optional[str], typer.Option("--motion", help="Same as MOTION \\\\[default: walk].")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\\\[default: RUN_DIR/model].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Animation directory to write \\\\[default: RUN_DIR/animation].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     seconds: Annotated[float, typer.Option(help="Length of a procedural motion in seconds.")] = 2.0,
-    fps: Annotated[Optional[float], typer.Option(help="Frames per second of the motion and the video \\[default: the pose file's, else 30].")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="Frames per second of the motion and the video \\\\[default: the pose file's, else 30].")] = None,
     frames: Annotated[Optional[int], typer.Option(help="Number of frames (procedural: instead of --seconds; pose file: its first N).", min=1)] = None,
     travel: Annotated[bool, typer.Option(help="Let the walk move forward (~0.8 m/s) instead of walking in place.")] = False,
     seed: Annotated[int, typer.Option(help="Seed of the procedural motion (pace, amplitudes).")] = 0,
     camera: Annotated[str, typer.Option(help="turntable (orbits the subject), front (static) or capture (the dataset's first camera).")] = "turntable",
     camera_file: Annotated[Optional[Path], typer.Option(help="npz with K (3,3), w2c (4,4) (or per frame), height, width; overrides --camera.")] = None,
-    dataset: Annotated[Optional[Path], typer.Option(help="Dataset for --camera capture \\[default: the one the model was trained on].")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(help="Dataset for --camera capture \\\\[default: the one the model was trained on].")] = None,
     revolutions: Annotated[float, typer.Option(help="Turns of the turntable camera over the animation.")] = 1.0,
     resolution: Annotated[int, typer.Option(help="Longer image side in pixels.", min=8)] = 256,
-    samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\[default: the model's validation setting].", min=1)] = None,
+    samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\\\[default: the model's validation setting].", min=1)] = None,
     meshes: Annotated[bool, typer.Option(help="Also write the posed mesh of every frame (meshes/NNNN.ply).")] = False,
     mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh for --meshes and --glb.", min=16)] = 256,
     glb: Annotated[bool, typer.Option(help="Also write animation.glb: the rigged avatar (Y-up) playing the motion as a glTF animation clip.")] = False,
     influences: Annotated[int, typer.Option(help="Skin weights per vertex in the --glb file: 4 (web engines) or 8 (Blender).")] = 4,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
-    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory (Anny pose files) \\[default: ~/.cache/anny].")] = None,
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory (Anny pose files) \\\\[default: ~/.cache/anny].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -421,8 +421,8 @@ def eval_(
 @user_errors
 def demo(
     run_dir: RunDir = DEFAULT_RUN_DIR,
-    preset: Annotated[Optional[str], typer.Option(help="Training preset [default: paper on a GPU, else cpu].")] = None,
-    steps: Annotated[Optional[int], typer.Option(help="Training steps [default: the preset's].")] = None,
+    preset: Annotated[Optional[str], typer.Option(help="Training preset \\[default: paper on a GPU, else cpu].")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Training steps \\[default: the preset's].")] = None,
     resolution: Annotated[int, typer.Option(help="Synthetic image size in pixels.", min=32)] = 512,
     train_frames: Annotated[int, typer.Option(help="Synthetic training frames.", min=1)] = 100,
     test_frames: Annotated[int, typer.Option(help="Synthetic test frames.", min=0)] = 30,

@@ -17,6 +17,15 @@ def test_help_lists_every_stage(cli_runner):
         assert command in result.output
 
 
+@pytest.mark.parametrize("command, default", [("preprocess", "[default: RUN_DIR/capture]"),
+                                              ("train", "[default: the preset's]"),
+                                              ("preprocess", "[default: 15 for a body model's template")])
+def test_help_shows_the_defaults_written_in_brackets(cli_runner, command, default):
+    """Rich reads [..] as markup: an unescaped "[default: ...]" vanished from --help."""
+    result = cli_runner.invoke(app, [command, "--help"], env={"COLUMNS": "250"})
+    assert result.exit_code == 0 and default in " ".join(result.output.replace("│", " ").split()), result.output
+
+
 def test_version(cli_runner):
     result = cli_runner.invoke(app, ["--version"])
     assert result.exit_code == 0 and __version__ in result.output
