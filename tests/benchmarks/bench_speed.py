@@ -283,6 +283,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, default=Path("igavatar-bench"))
     parser.add_argument("--model", type=Path, default=None, help="trained model: also time export, animate and eval")
+    parser.add_argument("--dataset", type=Path, default=None,
+                        help="time training on this dataset artifact instead of the default subject's (e.g. one made "
+                             "by another version, to compare two versions of the code on the same data)")
     parser.add_argument("--from-model", type=Path, default=None,
                         help="start the profiled steps from this trained model's weights (realistic sample counts)")
     parser.add_argument("--skip-training", action="store_true", help="only the export/animate/eval table (needs --model)")
@@ -297,7 +300,7 @@ def main() -> None:
     allocator = tune_host_allocator()
 
     status = {name: ("loaded" if load_kernel(name) is not None else kernel_status()[name]) for name in kernel_status()}
-    dataset = ensure_dataset(args.run_dir)
+    dataset = args.dataset if args.dataset is not None else ensure_dataset(args.run_dir)
     results: dict = {"machine": {"threads": torch.get_num_threads(), "torch": torch.__version__}, "kernels": status,
                      "host_allocator": allocator}
     print(f"kernels: {status}; {torch.get_num_threads()} threads, torch {torch.__version__}; "
