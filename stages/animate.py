@@ -153,7 +153,7 @@ def _cameras(model: ModelArtifact, options: AnimateOptions, motion: PoseSequence
         dataset = Path(options.dataset) if options.dataset is not None else model.trained_dataset()
         if dataset is None or not (dataset / "frames.npz").is_file():
             raise InputError(
-                f"--camera capture needs the dataset the model was trained on ({dataset or model.recorded_dataset()}"
+                f"--camera capture needs the dataset the model was trained on ({dataset or model.recorded_dataset}"
                 "/frames.npz holds the capture cameras) and it is not there; pass --dataset DIR, or use --camera "
                 "turntable or --camera-file"
             )

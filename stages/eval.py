@@ -48,7 +48,7 @@ from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
 from igavatar.avatar.model import ModelArtifact, ModelManifest, load_model, read_model_manifest
 from igavatar.avatar.surfaces import canonical_mesh
 from igavatar.capture.images import scale_intrinsics
-from igavatar.capture.scans import ScanMatching, default_gt_dir, existing, load_scan, match_scans
+from igavatar.capture.scans import ScanMatching, default_gt_dir, load_scan, match_scans
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight
 from igavatar.metrics.frame_geometry import frame_geometry
@@ -121,9 +121,9 @@ def resolve_dataset(model: ModelManifest, override: Path | None) -> Path:
         if not Path(override).exists():
             raise InputError(f"--dataset {override}: no such dataset directory")
         return Path(override)
-    recorded = model.recorded_dataset
-    found = existing(recorded, model.path)
+    found = model.trained_dataset()
     if found is None:
+        recorded = model.recorded_dataset
         raise InputError(
             f"{model.path}/manifest.json: data.dataset = {recorded} does not exist (nor {model.path.parent / recorded.name}); "
             "pass the dataset the model was trained on with --dataset"

@@ -71,6 +71,7 @@ from igavatar.avatar.surfaces import (
     surface_colors,
     vertex_colors,
     vertex_skin_weights,
+    vertices_on_box,
 )
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight
@@ -93,7 +94,6 @@ alike: the narrow band makes it cheap, 20-45 s on two shared CPU cores for a `cp
 cleanup and writing included (measured; 256 takes about 12 s)."""
 DEFAULT_TEXTURED_FACES = 30_000
 """Face budget of the textured mesh: a game-ready avatar (20-50k faces is the usual range)."""
-_BOX_PAD = 0.02  # of the canonical box's longest side (igavatar.avatar.surfaces marches that much beyond it)
 
 
 @dataclass(frozen=True)
@@ -263,9 +263,7 @@ def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, 
     with clock("cleanup_s"):
         vertices, faces, cleanup = _clean(raw_vertices, raw_faces, options)
         watertight = is_watertight(vertices, faces)
-    box = avatar.canonical_box.detach().cpu().numpy().astype(np.float64)
-    half_voxel = 0.5 * float((box[1] - box[0]).max()) * (1 + 2 * _BOX_PAD) / (options.resolution - 1)
-    on_box = np.any((np.abs(vertices - box[0]) < half_voxel) | (np.abs(vertices - box[1]) < half_voxel), axis=1)
+    on_box = vertices_on_box(avatar, vertices, options.resolution)
     with clock("colors_s"):
         colors = vertex_colors(avatar, vertices)
     skin_weights = None

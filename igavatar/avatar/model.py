@@ -20,6 +20,7 @@ from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
 from igavatar.body.motions import SKELETON_KINDS, body_to_world
 from igavatar.body.skeleton import Skeleton
 from igavatar.capture.posed_subject import PosedFrames, pose_frames
+from igavatar.capture.scans import existing
 from igavatar.model.avatar import Avatar
 from igavatar.model.posed import PosedAvatar
 from igavatar.render.occupancy import OccupancyGrid
@@ -40,8 +41,8 @@ def build_avatar(config: TrainConfig, subject: SubjectArrays, pose_dim: int) -> 
     )
 
 
-@dataclass(frozen=True)
-class ModelManifest:
+@dataclass(frozen=True, eq=False)
+class ModelManifest(ManifestFacts):
     """A model artifact's manifest, read without loading the network (for checks before the load)."""
 
     path: Path
@@ -55,7 +56,13 @@ class ModelManifest:
     @property
     def recorded_dataset(self) -> Path:
         """The dataset path recorded at training (relative to where `train` ran)."""
-        return Path(self.manifest["data"]["dataset"])
+        return Path(self.data["dataset"])
+
+    def trained_dataset(self) -> Path | None:
+        """The dataset it was trained on, if it is still there: the recorded path, else the path of
+        that name beside the model (a run directory moved as a whole, or a relative path recorded
+        where `train` ran)."""
+        return existing(self.recorded_dataset, self.path)
 
 
 def read_model_manifest(path: Path, check_hashes: bool = True) -> ModelManifest:
@@ -64,19 +71,17 @@ def read_model_manifest(path: Path, check_hashes: bool = True) -> ModelManifest:
 
 
 @dataclass(frozen=True, eq=False)
-class ModelArtifact(ManifestFacts):
+class ModelArtifact(ModelManifest):
     """A trained avatar with everything needed to pose and render it.
 
     Attributes:
-        path: the model artifact directory; manifest: its manifest.
+        path: the model artifact directory; manifest: its manifest (ModelManifest's reads).
         config: the TrainConfig it was trained with.
         avatar: the Avatar in eval mode, on the requested device.
         canonical_grid: its canonical occupancy grid.
         subject: its subject.npz (skeleton, canonical pose, skinning grid).
     """
 
-    path: Path
-    manifest: dict
     config: TrainConfig
     avatar: Avatar
     canonical_grid: OccupancyGrid
@@ -103,22 +108,6 @@ class ModelArtifact(ManifestFacts):
     @property
     def device(self) -> torch.device:
         return self.avatar.canonical_box.device
-
-    def recorded_dataset(self) -> Path:
-        """The dataset path recorded at training (relative to where `train` ran)."""
-        return Path(self.data["dataset"])
-
-    def trained_dataset(self) -> Path | None:
-        """The dataset it was trained on, if it is still there.
-
-        The recorded path, else a directory of that name beside the model (a run directory moved
-        as a whole, or a relative path recorded where `train` ran).
-        """
-        recorded = self.recorded_dataset()
-        for candidate in (recorded, self.path.parent / recorded.name):
-            if candidate.is_dir():
-                return candidate
-        return None
 
     def pose(self, local_rotations: torch.Tensor, root_translation: torch.Tensor) -> PosedFrames:
         """Bone transforms and pose conditioning of local rotations (N, J, 3, 3) relative to the rest pose."""

@@ -63,6 +63,14 @@ def canonical_surface(
                         coarse_resolution=coarse_resolution, progress=progress, device=avatar.canonical_box.device)
 
 
+def vertices_on_box(avatar: Avatar, vertices: np.ndarray, resolution: int) -> np.ndarray:
+    """(V,) bool: vertices of a `canonical_surface` at `resolution` that lie on the canonical box's
+    cap (within half a marching-cubes voxel of a box face), i.e. where the surface was cut open."""
+    box = avatar.canonical_box.detach().cpu().numpy().astype(np.float64)
+    half_voxel = 0.5 * float((box[1] - box[0]).max()) * (1 + 2 * _BOX_PAD) / (resolution - 1)
+    return np.any((np.abs(vertices - box[0]) < half_voxel) | (np.abs(vertices - box[1]) < half_voxel), axis=1)
+
+
 @torch.no_grad()
 def canonical_mesh(
     avatar: Avatar, resolution: int = 256, coarse_resolution: int = COARSE_RESOLUTION, progress: Progress = None
