@@ -10,6 +10,7 @@ from igavatar.model.deformer import (
     DeformerConfig,
     FastSnarfDeformer,
     _remove_duplicates,
+    init_parts,
     select_candidates,
 )
 from igavatar.skinning.grid import canonical_grid_box, grid_point_positions
@@ -178,6 +179,47 @@ def test_top_k_starts_keep_recovery(stick_figure):
     candidates, valid = deformer.canonicalize(deformer.forward_skinning(x_canonical, frame), frame)
     assert candidates.shape == (2000, 3, 3)
     assert float(_recovery(candidates, valid, x_canonical).float().mean()) > 0.97
+
+
+
+#: Start bones without the elbows and knees: the forearms and shins are skinned to bones that start
+#: no search, as a body model's knee belongs to a twist bone and its ankle to the foot's children.
+SPARSE_INIT_BONES = (0, 1, 2, 3, 4, 5, 8, 11, 14)
+
+
+def test_init_parts_follow_the_chain_to_the_nearest_start_bone():
+    parts = init_parts(PARENTS, SPARSE_INIT_BONES)
+    assert len(parts) == len(PARENTS)
+    named = {bone: SPARSE_INIT_BONES[part] for bone, part in enumerate(parts)}
+    assert named[12] == named[13] == 11 and named[15] == named[16] == 14  # shin and foot: their hip
+    assert named[6] == named[7] == 5 and named[10] == 8  # forearm and hand: their shoulder
+    assert all(named[b] == b for b in SPARSE_INIT_BONES)
+    assert init_parts([-1, 0, 1], (1,)) == (0, 0, 0)  # above every start bone: the first part
+    with pytest.raises(InputError, match="init_parts"):
+        DeformerConfig(init_bones=(0, 1), init_parts=(0, 2, 1))
+
+
+def test_top_k_ranked_by_parts_find_roots_where_starts_own_no_weight(stick_figure):
+    """With the knees and elbows not among the starts, ranking a start by its bone's own weight
+    keeps the wrong one for some shin and forearm points in a strongly bent pose (measured 94.5 %
+    recovered); ranking by its part's weight keeps the one that converges (100 %), as trying every
+    start does."""
+    weights, box_min, box_max = _stick_figure_grid()
+    bones = _bone_transforms(4, max_angle=1.0)
+    x_canonical = _canonical_points(3000, seed=6)
+    recovered = {}
+    for name, config in {
+        "own": DeformerConfig(init_bones=SPARSE_INIT_BONES, init_top_k=1),
+        "parts": DeformerConfig(init_bones=SPARSE_INIT_BONES, init_top_k=1,
+                                init_parts=init_parts(PARENTS, SPARSE_INIT_BONES)),
+        "all": DeformerConfig(init_bones=SPARSE_INIT_BONES),
+    }.items():
+        deformer = FastSnarfDeformer(weights, box_min, box_max, config)
+        frame = deformer.prepare(bones)
+        candidates, valid = deformer.canonicalize(deformer.forward_skinning(x_canonical, frame), frame)
+        recovered[name] = float(_recovery(candidates, valid, x_canonical).float().mean())
+    assert recovered["parts"] > recovered["own"] + 0.02, recovered
+    assert recovered["parts"] > recovered["all"] - 0.01, recovered
 
 
 def test_remove_duplicates_is_sequential():

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from igavatar.kernels import set_kernels_enabled
-from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, _broyden, _broyden_reference
+from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, _broyden, _broyden_reference, init_parts
 from igavatar.skinning.grid import apply_affine, blended_transform_grid, sample_blended_transforms, sample_grid
 from tests.conftest import built_kernel
-from tests.test_deformer import INIT_BONES, _bone_transforms, _canonical_points, _recovery, _stick_figure_grid
+from tests.test_deformer import INIT_BONES, PARENTS, _bone_transforms, _canonical_points, _recovery, _stick_figure_grid
 
 
 # Every test here runs with the kernels forced on (whatever IGAVATAR_KERNELS says).
@@ -91,9 +91,12 @@ def test_broyden_kernel_matches_reference(kernel, seed):
     torch.testing.assert_close(fast_norm[agree], ref_norm[agree], atol=1e-4, rtol=1e-3)
 
 
-def test_canonicalize_same_with_and_without_kernel(kernel):
+@pytest.mark.parametrize("ranked_by_parts", [False, True])
+def test_canonicalize_same_with_and_without_kernel(kernel, ranked_by_parts):
     weights, box_min, box_max = _stick_figure_grid()
-    deformer = FastSnarfDeformer(weights, box_min, box_max, DeformerConfig(init_bones=INIT_BONES, init_top_k=4))
+    parts = init_parts(PARENTS, INIT_BONES) if ranked_by_parts else None
+    deformer = FastSnarfDeformer(weights, box_min, box_max,
+                                 DeformerConfig(init_bones=INIT_BONES, init_top_k=4, init_parts=parts))
     bones = _bone_transforms(5)
     x_true = _canonical_points(2000, seed=5)
     frame = deformer.prepare(bones)

@@ -38,6 +38,7 @@ def build_avatar(config: TrainConfig, subject: SubjectArrays, pose_dim: int) -> 
         grid_box_max=torch.from_numpy(subject.grid_box_max).float(),
         pose_dim=pose_dim,
         init_bones=tuple(int(i) for i in subject.init_bones),
+        parents=tuple(int(i) for i in subject.parents),
     )
 
 

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, PreparedFrame
+from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, PreparedFrame, init_parts
 from igavatar.model.fields import (
     ColorField,
     ColorFieldConfig,
@@ -62,6 +62,8 @@ class Avatar(nn.Module):
         pose_dim: length of the pose-conditioning vector of the non-rigid offset.
         init_bones: bones root finding starts from (the body's major bones), overriding the
             deformer config's; None keeps the config's.
+        parents: (J,) the skeleton's parent per bone; with init_bones, the starts are ranked by
+            their parts' weights (DeformerConfig.init_parts).
     """
 
     def __init__(
@@ -73,6 +75,7 @@ class Avatar(nn.Module):
         grid_box_max: torch.Tensor,
         pose_dim: int,
         init_bones: tuple[int, ...] | None = None,
+        parents: tuple[int, ...] | None = None,
     ) -> None:
         super().__init__()
         self.config = config
@@ -85,7 +88,10 @@ class Avatar(nn.Module):
                 max_offset=config.nonrigid_max_offset,
             )
         )
-        deformer_config = config.deformer if init_bones is None else replace(config.deformer, init_bones=tuple(init_bones))
+        deformer_config = config.deformer
+        if init_bones is not None:
+            parts = None if parents is None else init_parts(parents, init_bones)
+            deformer_config = replace(deformer_config, init_bones=tuple(init_bones), init_parts=parts)
         self.deformer = FastSnarfDeformer(skinning_grid, grid_box_min, grid_box_max, deformer_config)
         self.register_buffer("canonical_box", canonical_box.clone())
 

@@ -22,6 +22,7 @@ the PyTorch reference it is tested against; ``IGAVATAR_KERNELS=0`` uses them eve
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -69,6 +70,12 @@ class DeformerConfig:
     init_top_k: int | None = None
     """If set, keep per point only the k starts whose bone has the largest skinning weight at
     its own rigidly un-posed start (self-consistent starts first); None keeps all starts."""
+    init_parts: tuple[int, ...] | None = None
+    """Per bone of the grid, the position in `init_bones` of the start bone that stands for it
+    (`init_parts`): the `init_top_k` selection then ranks a start by the summed weight of its
+    part, not of its bone alone. None: the bone's own weight. Without it, where a body's own
+    weights give a limb to bones that start no search (the knee to a twist bone, the ankle to
+    the foot's children), no start looks self-consistent and the top-k keep the wrong ones."""
     chunk_size: int = 32768
     """Posed points processed together by `canonicalize` (bounds peak memory)."""
 
@@ -88,8 +95,32 @@ class DeformerConfig:
             raise InputError("DeformerConfig.init_bones: empty; give bone indices or None (all)")
         if self.init_top_k is not None and self.init_top_k < 1:
             raise InputError(f"DeformerConfig.init_top_k: {self.init_top_k}, expected >= 1 or None")
+        if self.init_parts is not None:
+            starts = len(self.init_bones) if self.init_bones is not None else len(self.init_parts)
+            if any(not 0 <= p < starts for p in self.init_parts):
+                raise InputError(f"DeformerConfig.init_parts: entries must index init_bones (0..{starts - 1})")
         if self.chunk_size < 1:
             raise InputError(f"DeformerConfig.chunk_size: {self.chunk_size}, expected >= 1")
+
+
+def init_parts(parents: Sequence[int], init_bones: Sequence[int]) -> tuple[int, ...]:
+    """Each bone's part: the position in `init_bones` of its nearest ancestor-or-self among them.
+
+    A bone with no start bone above it (only possible when the root is not one) joins the first.
+
+    Args:
+        parents: (J,) parent index per bone, -1 at the root. init_bones: (I0,) bone indices.
+    Returns:
+        J entries in 0..I0-1 (DeformerConfig.init_parts).
+    """
+    position = {int(b): i for i, b in enumerate(init_bones)}
+    parts = []
+    for bone in range(len(parents)):
+        k = bone
+        while k >= 0 and k not in position:
+            k = int(parents[k])
+        parts.append(position[k] if k >= 0 else 0)
+    return tuple(parts)
 
 
 @dataclass(frozen=True)
@@ -336,6 +367,10 @@ class FastSnarfDeformer(nn.Module):
                 raise InputError(
                     f"DeformerConfig.init_bones: {bad} out of range for a grid with {num_joints} joints"
                 )
+        if config.init_parts is not None and len(config.init_parts) != num_joints:
+            raise InputError(
+                f"DeformerConfig.init_parts: {len(config.init_parts)} entries, expected one per bone ({num_joints})"
+            )
         self.config = config
         self.register_buffer("weights_grid", weights_grid)
         self.register_buffer("box_min", box_min.to(weights_grid.dtype))
@@ -394,6 +429,17 @@ class FastSnarfDeformer(nn.Module):
             init_weights_last=init_weights_last,
         )
 
+    def _start_weights(self, weights: torch.Tensor, init_bones: torch.Tensor, channel_dim: int) -> torch.Tensor:
+        """The weight each start bone is ranked by, from a grid with bones along `channel_dim`:
+        its part's summed weight with `init_parts`, else its own. Shape: the grid's with I0 channels."""
+        parts = self.config.init_parts
+        if parts is None:
+            return weights.index_select(channel_dim, init_bones)
+        shape = list(weights.shape)
+        shape[channel_dim] = len(init_bones)
+        index = torch.tensor(parts, dtype=torch.long, device=weights.device)
+        return weights.new_zeros(shape).index_add_(channel_dim, index, weights)
+
     def _channel_last_weights(self, init_bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(D, H, W, J) weights and (D, H, W, I0) init-bone weights, made once per grid and device."""
         # _version changes on in-place writes (load_state_dict), data_ptr on moves and replacements.
@@ -402,7 +448,7 @@ class FastSnarfDeformer(nn.Module):
         cached = getattr(self, "_weights_last_cache", None)
         if cached is None or cached[0] != key:
             weights_last = grid.detach().permute(1, 2, 3, 0).contiguous()
-            cached = (key, weights_last, weights_last[..., init_bones].contiguous())
+            cached = (key, weights_last, self._start_weights(weights_last, init_bones, channel_dim=3).contiguous())
             self._weights_last_cache = cached
         return cached[1], cached[2]
 
@@ -439,8 +485,8 @@ class FastSnarfDeformer(nn.Module):
             self_weight = kernel.sample_diagonal(frame.init_weights_last, frame.box_min, frame.box_max, x_init.contiguous())
         else:
             init_weights = sample_grid(
-                frame.weights_grid.detach()[frame.init_bones], frame.box_min, frame.box_max,
-                x_init.reshape(-1, 3),
+                self._start_weights(frame.weights_grid.detach(), frame.init_bones, channel_dim=0),
+                frame.box_min, frame.box_max, x_init.reshape(-1, 3),
             ).reshape(num_points, num_init, num_init)
             self_weight = torch.diagonal(init_weights, dim1=1, dim2=2)
         order = self_weight.topk(top_k, dim=1).indices
