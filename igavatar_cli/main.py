@@ -179,6 +179,12 @@ def preprocess(
     weight_smoothing: Annotated[Optional[int], typer.Option(
         help="Blur passes over the skinning-weight grid \\[default: 15 for a body model's template, 2 for a bare "
              "skeleton's bone weights]; fewer keeps the weights sharp where limbs meet.", min=0)] = None,
+    weight_spread: Annotated[Optional[float], typer.Option(
+        help="Template skinning weights by a distance-adaptive kernel: each grid voxel blends the template's "
+             "vertex weights with a Gaussian of width 1 cm + SPREAD x its distance to the body, so the body keeps "
+             "its own weights and the space away from it blends smoothly (no blur passes unless --weight-smoothing "
+             "says so). Experimental: better on novel poses in the benchmark, but one run lost a foot "
+             "\\[default: inverse distance, blurred].", min=0.0)] = None,
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
     smpl_model: Annotated[
         Optional[Path],
@@ -203,7 +209,7 @@ def preprocess(
     options = PreprocessOptions(
         capture=capture or layout.capture, out=out or layout.dataset, input_format=input_format,
         max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution),
-        weight_smoothing=weight_smoothing, anny_cache=anny_cache,
+        weight_smoothing=weight_smoothing, weight_spread=weight_spread, anny_cache=anny_cache,
         smpl_model=smpl_model, shape_prior=shape_prior, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:

@@ -76,6 +76,11 @@ HULL_CELL_M = 0.02
 #: three subjects x two seeds, in-distribution unchanged (tests/benchmarks/results/weight-smoothing.md).
 #: Fewer passes (2, 8) were better still on two subjects but cut a foot off the third.
 TEMPLATE_WEIGHT_SMOOTHING = 15
+#: The distance-adaptive kernel's growth for a template unless --weight-spread says otherwise
+#: (None: InstantAvatar's inverse-distance weights). Not the default yet: with spread 1 and no blur,
+#: out-of-distribution CD-L1 fell by 1.3-2.9 mm on all six (subject, seed) pairs, but one run lost a
+#: foot (tests/benchmarks/results/weight-spread.md).
+TEMPLATE_WEIGHT_SPREAD: float | None = None
 CONTACT_SHEET_FRAMES = 12
 
 
@@ -89,6 +94,7 @@ class PreprocessOptions:
     max_size: int = 512
     grid_resolution: tuple[int, int, int] = (64, 16, 64)
     weight_smoothing: int | None = None
+    weight_spread: float | None = None
     anny_cache: Path | None = None
     smpl_model: Path | None = None
     shape_prior: str = "auto"
@@ -103,8 +109,25 @@ class PreprocessOptions:
             **({"shape_prior": self.shape_prior} if self.shape_prior != "auto" else {}),
             # The passes actually used, so that a change of the defaults makes a new dataset.
             "weight_smoothing": self.weight_smoothing if self.weight_smoothing is not None else
-            f"default: template {TEMPLATE_WEIGHT_SMOOTHING}, bones {BoneWeightConfig().smoothing_iterations}",
+            f"default: template {TEMPLATE_WEIGHT_SMOOTHING if self.weight_blur.spread is None else 0}, "
+            f"bones {BoneWeightConfig().smoothing_iterations}",
+            # Only when set, so that datasets made with inverse-distance weights keep their config.
+            **({"weight_spread": self.weight_blur.spread} if self.weight_blur.spread is not None else {}),
         }
+
+    @property
+    def weight_blur(self) -> WeightBlur:
+        spread = TEMPLATE_WEIGHT_SPREAD if self.weight_spread is None else self.weight_spread
+        return WeightBlur(self.weight_smoothing, spread)
+
+
+@dataclass(frozen=True)
+class WeightBlur:
+    """How the skinning-weight grid is made smooth: blur passes (None: the source's default) and,
+    for a template, the distance-adaptive kernel's growth (None: inverse-distance weights)."""
+
+    passes: int | None = None
+    spread: float | None = None
 
 
 def parse_grid_resolution(text: str) -> tuple[int, int, int]:
@@ -185,22 +208,24 @@ def _padded(boxes: torch.Tensor) -> torch.Tensor:
 
 
 def _weights_grid(subject: PosedSubject, canonical: CanonicalSubject, box_min: torch.Tensor, box_max: torch.Tensor,
-                  resolution: tuple[int, int, int], smoothing: int | None = None) -> torch.Tensor:
+                  resolution: tuple[int, int, int], blur: WeightBlur = WeightBlur()) -> torch.Tensor:
     """(J, D, H, W) skinning weights over a box: the template's, or for a bare skeleton the bones'.
 
-    `smoothing` is the number of blur passes; None keeps each source's default
-    (TEMPLATE_WEIGHT_SMOOTHING for a template, BoneWeightConfig's for bones).
+    `blur.passes` None keeps each source's default (TEMPLATE_WEIGHT_SMOOTHING for a template,
+    BoneWeightConfig's for bones); the spread applies to a template only (bones have no vertices).
     """
     if canonical.template_vertices is not None:
-        passes = TEMPLATE_WEIGHT_SMOOTHING if smoothing is None else smoothing
+        # The kernel is smooth already: its default is no blur.
+        default_passes = TEMPLATE_WEIGHT_SMOOTHING if blur.spread is None else 0
+        passes = default_passes if blur.passes is None else blur.passes
         return build_skinning_grid(canonical.template_vertices, subject.template_weights, box_min, box_max, resolution,
-                                   smoothing_iterations=passes)
-    config = BoneWeightConfig() if smoothing is None else BoneWeightConfig(smoothing_iterations=smoothing)
+                                   smoothing_iterations=passes, spread=blur.spread)
+    config = BoneWeightConfig() if blur.passes is None else BoneWeightConfig(smoothing_iterations=blur.passes)
     return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, resolution, config)
 
 
 def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int],
-                smoothing: int | None) -> ShapePrior:
+                blur: WeightBlur) -> ShapePrior:
     """The body model's template, or for a bare skeleton capsules around its bones."""
     if canonical.template_vertices is not None:
         vertices, faces, kind = canonical.template_vertices, subject.template_faces, "template"
@@ -210,7 +235,7 @@ def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: 
         vertices, faces, kind = capsules.vertices, capsules.faces, "capsules"
         posed_boxes = capsules.posed_boxes  # joints alone miss the crown, hands and feet
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices))
-    return ShapePrior(vertices, faces, kind, box_min, box_max, _weights_grid(subject, canonical, box_min, box_max, resolution, smoothing), _padded(posed_boxes))
+    return ShapePrior(vertices, faces, kind, box_min, box_max, _weights_grid(subject, canonical, box_min, box_max, resolution, blur), _padded(posed_boxes))
 
 
 def _hull_prior(
@@ -221,7 +246,7 @@ def _hull_prior(
     K: np.ndarray,
     w2c: np.ndarray,
     resolution: tuple[int, int, int],
-    smoothing: int | None,
+    blur: WeightBlur,
 ) -> ShapePrior | None:
     """The masks' visual hull as the shape prior, or None when the masks keep nothing.
 
@@ -231,7 +256,7 @@ def _hull_prior(
     posed boxes.
     """
     lo, hi = search_box(canonical.canonical_joints)
-    skin = grid_skin(_weights_grid(subject, canonical, lo, hi, resolution, smoothing), lo, hi, canonical.bone_transforms)
+    skin = grid_skin(_weights_grid(subject, canonical, lo, hi, resolution, blur), lo, hi, canonical.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
     hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M)
     if hull is None:
@@ -239,7 +264,7 @@ def _hull_prior(
     vertices = hull.vertices
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE)
-    grid = _weights_grid(subject, canonical, box_min, box_max, resolution, smoothing)
+    grid = _weights_grid(subject, canonical, box_min, box_max, resolution, blur)
     skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
     posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
     posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])
@@ -417,9 +442,9 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             hull_masks = _write_frames(tmp, capture, subject, canonical, K, size_hw, hull_views, progress)
         with clock("skinning_grid_s"):
             prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution,
-                                options.weight_smoothing) if hull_views else None
+                                options.weight_blur) if hull_views else None
             if prior is None:
-                prior = _body_prior(subject, canonical, options.grid_resolution, options.weight_smoothing)
+                prior = _body_prior(subject, canonical, options.grid_resolution, options.weight_blur)
         _write_arrays(tmp, capture, subject, canonical, prior, K)
         data = _dataset_data(capture, input_format, subject, canonical, prior, size_hw, scale_xy[0], options)
         build_manifest("dataset", tmp, stage="preprocess", config=config, inputs=inputs, data=data, seed=None,

@@ -30,6 +30,7 @@ __all__ = [
     "grid_point_positions",
     "build_skinning_grid",
     "smooth_weights_grid",
+    "distance_adaptive_weights",
     "sample_grid",
     "sample_skinning_weights",
     "inside_grid",
@@ -141,11 +142,18 @@ def build_skinning_grid(
     resolution: Sequence[int],
     k: int = 30,
     smoothing_iterations: int = 30,
+    spread: float | None = None,
 ) -> torch.Tensor:
     """Skinning-weight grid from template vertices: k-NN inverse-distance weights, then blur.
 
     InstantAvatar's recipe (30 nearest vertices weighted by 1/distance, 30 smoothing passes);
     every voxel's weights are non-negative and sum to 1.
+
+    With `spread`, each voxel instead blends its SPREAD_NEIGHBORS nearest vertices with a Gaussian
+    whose width grows with the voxel's distance d to the nearest vertex, sigma = SPREAD_SIGMA0_M +
+    spread * d (`distance_adaptive_weights`): on and near the body a voxel takes the template's own
+    weights, and far from it the weights blend smoothly. A uniform blur cannot do both: it drags
+    every weight across the gaps, so the thighs share weights and the arms leak into the flanks.
 
     Args:
         vertices_canonical: (V, 3) canonical template vertices.
@@ -154,6 +162,7 @@ def build_skinning_grid(
         resolution: (D, H, W) voxel counts along z, y, x.
         k: nearest vertices blended per voxel (clamped to V).
         smoothing_iterations: 3x3x3 box-blur passes.
+        spread: growth of the kernel width with distance (unitless); None for inverse distance.
     Returns:
         (J, D, H, W) float32 weights on the device of `weights` (CPU for numpy input).
     """
@@ -172,6 +181,8 @@ def build_skinning_grid(
     check_box(box_min, box_max, "box_min/box_max")
     if k < 1:
         raise InputError(f"k: {k}, expected >= 1")
+    if spread is not None and not spread >= 0:
+        raise InputError(f"spread: {spread}, expected >= 0 (or None for inverse-distance weights)")
     if bool((vertex_weights < 0).any()):
         raise InputError("weights: negative skinning weights; expected non-negative (V, J)")
     if bool((vertex_weights.sum(dim=1) <= 0).any()):
@@ -187,18 +198,57 @@ def build_skinning_grid(
     weights_np = weights_np / weights_np.sum(axis=1, keepdims=True)
     k = min(int(k), vertices_np.shape[0])
 
-    distance, index = cKDTree(vertices_np).query(positions.reshape(-1, 3).numpy(), k=k)
-    distance = distance.reshape(-1, k)
-    index = index.reshape(-1, k)
-    # The floor keeps a voxel sitting on a vertex finite; it then takes (almost) that vertex's weights.
-    inverse_distance = 1.0 / np.maximum(distance, 1e-4)
-    inverse_distance /= inverse_distance.sum(axis=1, keepdims=True)
-    voxel_weights = np.einsum("nk,nkj->nj", inverse_distance, weights_np[index])
+    points = positions.reshape(-1, 3).numpy()
+    if spread is None:
+        distance, index = cKDTree(vertices_np).query(points, k=k)
+        distance = distance.reshape(-1, k)
+        index = index.reshape(-1, k)
+        # The floor keeps a voxel sitting on a vertex finite; it then takes (almost) that vertex's weights.
+        inverse_distance = 1.0 / np.maximum(distance, 1e-4)
+        inverse_distance /= inverse_distance.sum(axis=1, keepdims=True)
+        voxel_weights = np.einsum("nk,nkj->nj", inverse_distance, weights_np[index])
+    else:
+        voxel_weights = distance_adaptive_weights(vertices_np, weights_np, points, spread)
 
     grid = torch.from_numpy(voxel_weights.T.reshape(-1, depth, height, width)).to(torch.float32)
     grid = grid / grid.sum(dim=0, keepdim=True)
     grid = smooth_weights_grid(grid, smoothing_iterations)
     return grid.contiguous().to(device)
+
+
+#: Nearest vertices blended per voxel by the distance-adaptive kernel, and its width at the body.
+SPREAD_NEIGHBORS = 256
+SPREAD_SIGMA0_M = 0.01
+
+
+def distance_adaptive_weights(
+    vertices: np.ndarray, vertex_weights: np.ndarray, points: np.ndarray, spread: float, chunk: int = 2048
+) -> np.ndarray:
+    """Blend vertex weights at points with a Gaussian that widens away from the body.
+
+    Each point takes its SPREAD_NEIGHBORS nearest vertices, weighted by
+    exp(-(|p - v|^2 - d^2) / (2 sigma^2)), with d the distance to the nearest vertex and
+    sigma = SPREAD_SIGMA0_M + spread * d. Subtracting d^2 only rescales a point's kernel (it keeps
+    the exponentials from underflowing far from the body); the blend is continuous in the point.
+
+    Args:
+        vertices: (V, 3) float64. vertex_weights: (V, J) rows summing to 1. points: (N, 3).
+        spread: kernel growth with distance (0: a fixed 1 cm kernel everywhere).
+        chunk: points per k-NN query (bounds memory at chunk x SPREAD_NEIGHBORS x J floats).
+    Returns:
+        (N, J) float64 weights, rows summing to 1.
+    """
+    tree = cKDTree(vertices)
+    k = min(SPREAD_NEIGHBORS, len(vertices))
+    out = np.empty((len(points), vertex_weights.shape[1]))
+    for start in range(0, len(points), chunk):
+        distance, index = tree.query(points[start:start + chunk], k=k)
+        distance, index = distance.reshape(len(distance), k), index.reshape(len(index), k)
+        sigma = SPREAD_SIGMA0_M + spread * distance[:, :1]
+        kernel = np.exp(-0.5 * (distance**2 - distance[:, :1] ** 2) / sigma**2)
+        kernel /= kernel.sum(axis=1, keepdims=True)
+        out[start:start + chunk] = np.einsum("nk,nkj->nj", kernel, vertex_weights[index])
+    return out
 
 
 def _normalized_coordinates(

@@ -1,0 +1,77 @@
+"""How much error a skinning-weight grid alone puts on a perfect surface (no training).
+
+The synthetic capture's true clothed surface in the canonical pose is posed into every test frame
+twice: by the grid's weights (sampled at its vertices) and by its own per-vertex weights (which is
+how the scans were made). The distance between the two is the floor that grid sets on posed
+geometry. Prints mean / p95 vertex error in mm per motion.
+
+    python tests/benchmarks/bench_skinning_grid.py --run RUN_DIR/plain-heavy --grids p15,p2,s1
+    (RUN_DIR/<subject> holds capture/ and dataset/ as bench_quality.py makes them;
+     pN = inverse distance + N blur passes, sA = distance-adaptive kernel with spread A, no blur)
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from igavatar.avatar.canonical_report import canonical_truth
+from igavatar.avatar.dataset import read_dataset
+from igavatar.capture.importers import detect_layout, read_layout
+from igavatar.capture.subject import canonicalize, subject_from_capture
+from igavatar.metrics.canonical import REST_SURFACE_FILE
+from igavatar.skinning.grid import build_skinning_grid, sample_grid
+
+
+def _lbs(weights: np.ndarray, transforms: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(V, J) weights, (J, 4, 4) transforms, (V, 3) points -> (V, 3) posed points."""
+    blended = np.einsum("vj,jab->vab", weights, transforms)
+    return np.einsum("vab,vb->va", blended[:, :3, :3], x) + blended[:, :3, 3]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", type=Path, required=True, help="a subject's run dir (capture/ and dataset/)")
+    parser.add_argument("--grids", default="p30,p15,p2,s1", help="comma-separated grids: pN or sA")
+    args = parser.parse_args()
+    dataset = read_dataset(args.run / "dataset")
+    capture_dir = args.run / "capture"
+    subject = subject_from_capture(read_layout(capture_dir, detect_layout(capture_dir)), None, None, None)
+    template = canonicalize(subject).template_vertices
+    truth = canonical_truth(capture_dir, dataset.subject)
+    if template is None or truth is None:
+        raise SystemExit(f"{args.run}: needs a body-model template and {REST_SURFACE_FILE} (a synthetic capture)")
+    with np.load(capture_dir / REST_SURFACE_FILE) as rest:
+        own = np.zeros((len(truth[0]), dataset.subject.n_joints))
+        np.put_along_axis(own, rest["weights_index"], rest["weights_value"], axis=1)
+    own /= own.sum(axis=1, keepdims=True)
+    box_min = torch.from_numpy(dataset.subject.grid_box_min).float()
+    box_max = torch.from_numpy(dataset.subject.grid_box_max).float()
+    resolution = dataset.subject.skinning_grid.shape[1:]
+    frames = dataset.frames()
+    motions: dict[str, list[int]] = {}
+    for i, name in enumerate(frames.names):
+        if name.startswith("test_"):
+            motions.setdefault(name.removeprefix("test_").rsplit("_", 1)[0], []).append(i)
+    print(f"{'grid':8s}", "  ".join(f"{m:>16s}" for m in sorted(motions)), "  (mean / p95 mm)")
+    for spec in args.grids.split(","):
+        kind, value = spec[0], float(spec[1:])
+        grid = build_skinning_grid(template, subject.template_weights, box_min, box_max, resolution,
+                                   smoothing_iterations=int(value) if kind == "p" else 0,
+                                   spread=value if kind == "s" else None)
+        weights = sample_grid(grid, box_min, box_max, torch.from_numpy(truth[0]).float()).double().numpy()
+        cells = []
+        for motion in sorted(motions):
+            error = np.concatenate([
+                np.linalg.norm(_lbs(weights, frames.bone_transforms[i], truth[0]) - _lbs(own, frames.bone_transforms[i], truth[0]), axis=1)
+                for i in motions[motion]
+            ]) * 1e3
+            cells.append(f"{error.mean():7.2f} / {np.percentile(error, 95):5.1f}")
+        print(f"{spec:8s}", "  ".join(f"{c:>16s}" for c in cells), flush=True)
+
+
+if __name__ == "__main__":
+    main()
