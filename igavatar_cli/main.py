@@ -180,11 +180,10 @@ def preprocess(
         help="Blur passes over the skinning-weight grid \\[default: 15 for a body model's template, 2 for a bare "
              "skeleton's bone weights]; fewer keeps the weights sharp where limbs meet.", min=0)] = None,
     weight_spread: Annotated[Optional[float], typer.Option(
-        help="Template skinning weights by a distance-adaptive kernel: each grid voxel blends the template's "
-             "vertex weights with a Gaussian of width 1 cm + SPREAD x its distance to the body, so the body keeps "
-             "its own weights and the space away from it blends smoothly (no blur passes unless --weight-smoothing "
-             "says so). Experimental: better on novel poses in the benchmark, but one run lost a foot "
-             "\\[default: inverse distance, blurred].", min=0.0)] = None,
+        help="Near a template (within 5 cm, handing over by 15 cm) take its own skinning weights, blended by a "
+             "Gaussian of width 1 cm + SPREAD x the distance to the body, instead of the blurred grid, which "
+             "leaks weight between the thighs and from the arms into the flanks. Experimental: better on novel "
+             "poses in the benchmark, but one run of nine lost a foot \\[default: off].", min=0.0)] = None,
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
     smpl_model: Annotated[
         Optional[Path],

@@ -76,10 +76,10 @@ HULL_CELL_M = 0.02
 #: three subjects x two seeds, in-distribution unchanged (tests/benchmarks/results/weight-smoothing.md).
 #: Fewer passes (2, 8) were better still on two subjects but cut a foot off the third.
 TEMPLATE_WEIGHT_SMOOTHING = 15
-#: The distance-adaptive kernel's growth for a template unless --weight-spread says otherwise
-#: (None: InstantAvatar's inverse-distance weights). Not the default yet: with spread 1 and no blur,
-#: out-of-distribution CD-L1 fell by 1.3-2.9 mm on all six (subject, seed) pairs, but one run lost a
-#: foot (tests/benchmarks/results/weight-spread.md).
+#: --weight-spread's default: near a template, weights by the distance-adaptive kernel with this
+#: growth, handing over to the blurred grid further out (None: the blurred grid everywhere). Not the
+#: default yet: spread 1 lowered out-of-distribution CD-L1 on all nine (subject, seed) runs and
+#: removed most of the leg-gap web, but one run lost a foot (tests/benchmarks/results/weight-spread.md).
 TEMPLATE_WEIGHT_SPREAD: float | None = None
 CONTACT_SHEET_FRAMES = 12
 
@@ -109,8 +109,7 @@ class PreprocessOptions:
             **({"shape_prior": self.shape_prior} if self.shape_prior != "auto" else {}),
             # The passes actually used, so that a change of the defaults makes a new dataset.
             "weight_smoothing": self.weight_smoothing if self.weight_smoothing is not None else
-            f"default: template {TEMPLATE_WEIGHT_SMOOTHING if self.weight_blur.spread is None else 0}, "
-            f"bones {BoneWeightConfig().smoothing_iterations}",
+            f"default: template {TEMPLATE_WEIGHT_SMOOTHING}, bones {BoneWeightConfig().smoothing_iterations}",
             # Only when set, so that datasets made with inverse-distance weights keep their config.
             **({"weight_spread": self.weight_blur.spread} if self.weight_blur.spread is not None else {}),
         }
@@ -124,7 +123,7 @@ class PreprocessOptions:
 @dataclass(frozen=True)
 class WeightBlur:
     """How the skinning-weight grid is made smooth: blur passes (None: the source's default) and,
-    for a template, the distance-adaptive kernel's growth (None: inverse-distance weights)."""
+    for a template, the growth of the distance-adaptive kernel used near the body (None: none)."""
 
     passes: int | None = None
     spread: float | None = None
@@ -215,9 +214,7 @@ def _weights_grid(subject: PosedSubject, canonical: CanonicalSubject, box_min: t
     BoneWeightConfig's for bones); the spread applies to a template only (bones have no vertices).
     """
     if canonical.template_vertices is not None:
-        # The kernel is smooth already: its default is no blur.
-        default_passes = TEMPLATE_WEIGHT_SMOOTHING if blur.spread is None else 0
-        passes = default_passes if blur.passes is None else blur.passes
+        passes = TEMPLATE_WEIGHT_SMOOTHING if blur.passes is None else blur.passes
         return build_skinning_grid(canonical.template_vertices, subject.template_weights, box_min, box_max, resolution,
                                    smoothing_iterations=passes, spread=blur.spread)
     config = BoneWeightConfig() if blur.passes is None else BoneWeightConfig(smoothing_iterations=blur.passes)

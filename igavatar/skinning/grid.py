@@ -134,6 +134,14 @@ def smooth_weights_grid(weights_grid: torch.Tensor, iterations: int) -> torch.Te
     return volume.squeeze(0)
 
 
+#: Nearest vertices blended per voxel by the distance-adaptive kernel, and its width at the body.
+SPREAD_NEIGHBORS = 256
+SPREAD_SIGMA0_M = 0.01
+#: Distances to the body (meters) between which the kernel's weights hand over to the blurred grid's.
+SPREAD_NEAR_M = 0.05
+SPREAD_FAR_M = 0.15
+
+
 def build_skinning_grid(
     vertices_canonical: torch.Tensor | np.ndarray,
     weights: torch.Tensor | np.ndarray,
@@ -149,11 +157,13 @@ def build_skinning_grid(
     InstantAvatar's recipe (30 nearest vertices weighted by 1/distance, 30 smoothing passes);
     every voxel's weights are non-negative and sum to 1.
 
-    With `spread`, each voxel instead blends its SPREAD_NEIGHBORS nearest vertices with a Gaussian
-    whose width grows with the voxel's distance d to the nearest vertex, sigma = SPREAD_SIGMA0_M +
-    spread * d (`distance_adaptive_weights`): on and near the body a voxel takes the template's own
-    weights, and far from it the weights blend smoothly. A uniform blur cannot do both: it drags
-    every weight across the gaps, so the thighs share weights and the arms leak into the flanks.
+    With `spread`, voxels near the body instead blend their SPREAD_NEIGHBORS nearest vertices with a
+    Gaussian whose width grows with the voxel's distance d to the nearest vertex, sigma =
+    SPREAD_SIGMA0_M + spread * d (`distance_adaptive_weights`), so the body and the clothes on it
+    keep the template's own weights; from SPREAD_NEAR_M to SPREAD_FAR_M away they hand over to the
+    blurred grid, which keeps far space a smooth mix. The blur alone drags every weight across the
+    gaps (the thighs share weights, the arms leak into the flanks); the kernel alone skins the space
+    between the spread legs rigidly with the nearer leg, which gives the posed feet a second root.
 
     Args:
         vertices_canonical: (V, 3) canonical template vertices.
@@ -199,26 +209,30 @@ def build_skinning_grid(
     k = min(int(k), vertices_np.shape[0])
 
     points = positions.reshape(-1, 3).numpy()
-    if spread is None:
-        distance, index = cKDTree(vertices_np).query(points, k=k)
-        distance = distance.reshape(-1, k)
-        index = index.reshape(-1, k)
-        # The floor keeps a voxel sitting on a vertex finite; it then takes (almost) that vertex's weights.
-        inverse_distance = 1.0 / np.maximum(distance, 1e-4)
-        inverse_distance /= inverse_distance.sum(axis=1, keepdims=True)
-        voxel_weights = np.einsum("nk,nkj->nj", inverse_distance, weights_np[index])
-    else:
-        voxel_weights = distance_adaptive_weights(vertices_np, weights_np, points, spread)
+    tree = cKDTree(vertices_np)
+    distance, index = tree.query(points, k=k)
+    distance = distance.reshape(-1, k)
+    index = index.reshape(-1, k)
+    # The floor keeps a voxel sitting on a vertex finite; it then takes (almost) that vertex's weights.
+    inverse_distance = 1.0 / np.maximum(distance, 1e-4)
+    inverse_distance /= inverse_distance.sum(axis=1, keepdims=True)
+    voxel_weights = np.einsum("nk,nkj->nj", inverse_distance, weights_np[index])
 
     grid = torch.from_numpy(voxel_weights.T.reshape(-1, depth, height, width)).to(torch.float32)
     grid = grid / grid.sum(dim=0, keepdim=True)
     grid = smooth_weights_grid(grid, smoothing_iterations)
+    if spread is not None:
+        # Near voxels take the kernel's weights; the hand-over is linear in the distance, so continuous.
+        near = (SPREAD_FAR_M - distance[:, 0]) / (SPREAD_FAR_M - SPREAD_NEAR_M)
+        near = np.clip(near, 0.0, 1.0)
+        needed = near > 0
+        kernel = np.zeros((len(points), weights_np.shape[1]))
+        kernel[needed] = distance_adaptive_weights(vertices_np, weights_np, points[needed], spread)
+        alpha = torch.from_numpy(near.reshape(1, depth, height, width)).to(torch.float32)
+        kernel_grid = torch.from_numpy(kernel.T.reshape(-1, depth, height, width)).to(torch.float32)
+        grid = alpha * kernel_grid + (1.0 - alpha) * grid
+        grid = grid / grid.sum(dim=0, keepdim=True)
     return grid.contiguous().to(device)
-
-
-#: Nearest vertices blended per voxel by the distance-adaptive kernel, and its width at the body.
-SPREAD_NEIGHBORS = 256
-SPREAD_SIGMA0_M = 0.01
 
 
 def distance_adaptive_weights(

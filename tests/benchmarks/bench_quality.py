@@ -51,7 +51,7 @@ EXTRA_SUBJECTS: dict[str, list[str]] = {
     "static-root": ["--seed", "3", "--skeleton", "root", "--test-frames", "0", "--texture", "checker"],
     **{f"{name}-hull": args for name, args in SUBJECTS.items()},
     **{f"{name}-sharp{n}": args for name, args in SUBJECTS.items() for n in (2, 8, 15, 30)},
-    **{f"{name}-spread{n}": args for name, args in SUBJECTS.items() for n in (0, 2)},
+    **{f"{name}-spread": args for name, args in SUBJECTS.items()},
 }
 #: Preprocess options of a subject (default: none): the `*-hull` subjects take the masks' visual
 #: hull as the shape prior instead of the naked template.
@@ -59,8 +59,8 @@ PREPROCESS_ARGS: dict[str, list[str]] = {
     **{f"{name}-hull": ["--shape-prior", "visual-hull"] for name in SUBJECTS},
     # The template's skinning weights blurred by n passes (the default is 15; 30 was InstantAvatar's and ours before).
     **{f"{name}-sharp{n}": ["--weight-smoothing", str(n)] for name in SUBJECTS for n in (2, 8, 15, 30)},
-    # Distance-adaptive kernel (width 1 cm + spread x distance) with n blur passes.
-    **{f"{name}-spread{n}": ["--weight-spread", "1", "--weight-smoothing", str(n)] for name in SUBJECTS for n in (0, 2)},
+    # The template's own weights near the body (distance-adaptive kernel, spread 1), the 15-pass blur far away.
+    **{f"{name}-spread": ["--weight-spread", "1"] for name in SUBJECTS},
 }
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.

@@ -1,13 +1,19 @@
 """How much error a skinning-weight grid alone puts on a perfect surface (no training).
 
-The synthetic capture's true clothed surface in the canonical pose is posed into every test frame
-twice: by the grid's weights (sampled at its vertices) and by its own per-vertex weights (which is
-how the scans were made). The distance between the two is the floor that grid sets on posed
-geometry. Prints mean / p95 vertex error in mm per motion.
+Two tables per grid, from a synthetic capture's true clothed surface in the canonical pose:
 
-    python tests/benchmarks/bench_skinning_grid.py --run RUN_DIR/plain-heavy --grids p15,p2,s1
+1. Posing: the surface posed into every test frame by the grid's weights (sampled at its vertices)
+   against its own per-vertex weights (which is how the scans were made): the floor that grid sets
+   on posed geometry, mean / p95 vertex error in mm per motion.
+2. Root finding: the surface posed by its own weights into every 10th training frame and root-found
+   back with the grid (the default deformer settings: the subject's start bones, top 2 ranked by
+   part): per body part, the share of points with no root at their true canonical place ("missed":
+   training can never put that surface where it belongs) and with a second valid root elsewhere
+   ("spurious": training may put it there instead).
+
+    python tests/benchmarks/bench_skinning_grid.py --run RUN_DIR/plain-heavy --grids p30,p15,s1
     (RUN_DIR/<subject> holds capture/ and dataset/ as bench_quality.py makes them;
-     pN = inverse distance + N blur passes, sA = distance-adaptive kernel with spread A, no blur)
+     pN = inverse distance + N blur passes, sA = --weight-spread A over the default 15 passes)
 """
 
 from __future__ import annotations
@@ -23,7 +29,11 @@ from igavatar.avatar.dataset import read_dataset
 from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.subject import canonicalize, subject_from_capture
 from igavatar.metrics.canonical import REST_SURFACE_FILE
+from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, init_parts
 from igavatar.skinning.grid import build_skinning_grid, sample_grid
+
+#: Body parts of the root-finding table, by the prefix of an Anny bone name.
+PARTS = {"foot": ("toe", "foot"), "shin": ("lowerleg",), "thigh": ("upperleg",), "hand": ("finger", "metacarpal", "wrist")}
 
 
 def _lbs(weights: np.ndarray, transforms: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -35,7 +45,7 @@ def _lbs(weights: np.ndarray, transforms: np.ndarray, x: np.ndarray) -> np.ndarr
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, required=True, help="a subject's run dir (capture/ and dataset/)")
-    parser.add_argument("--grids", default="p30,p15,p2,s1", help="comma-separated grids: pN or sA")
+    parser.add_argument("--grids", default="p30,p15,s1", help="comma-separated grids: pN or sA")
     args = parser.parse_args()
     dataset = read_dataset(args.run / "dataset")
     capture_dir = args.run / "capture"
@@ -47,7 +57,11 @@ def main() -> None:
     with np.load(capture_dir / REST_SURFACE_FILE) as rest:
         own = np.zeros((len(truth[0]), dataset.subject.n_joints))
         np.put_along_axis(own, rest["weights_index"], rest["weights_value"], axis=1)
+        dominant = rest["weights_index"][np.arange(len(own)), rest["weights_value"].argmax(axis=1)]
     own /= own.sum(axis=1, keepdims=True)
+    names = dataset.subject.joint_names
+    part_of = np.array([next((part for part, prefixes in PARTS.items() if names[j].startswith(prefixes)), "other")
+                        for j in dominant])
     box_min = torch.from_numpy(dataset.subject.grid_box_min).float()
     box_max = torch.from_numpy(dataset.subject.grid_box_max).float()
     resolution = dataset.subject.skinning_grid.shape[1:]
@@ -56,12 +70,15 @@ def main() -> None:
     for i, name in enumerate(frames.names):
         if name.startswith("test_"):
             motions.setdefault(name.removeprefix("test_").rsplit("_", 1)[0], []).append(i)
-    print(f"{'grid':8s}", "  ".join(f"{m:>16s}" for m in sorted(motions)), "  (mean / p95 mm)")
+    grids = {}
     for spec in args.grids.split(","):
         kind, value = spec[0], float(spec[1:])
-        grid = build_skinning_grid(template, subject.template_weights, box_min, box_max, resolution,
-                                   smoothing_iterations=int(value) if kind == "p" else 0,
-                                   spread=value if kind == "s" else None)
+        grids[spec] = build_skinning_grid(template, subject.template_weights, box_min, box_max, resolution,
+                                          smoothing_iterations=int(value) if kind == "p" else 15,
+                                          spread=value if kind == "s" else None)
+    print("1. posing error of the true surface (mean / p95 mm)")
+    print(f"{'grid':8s}", "  ".join(f"{m:>16s}" for m in sorted(motions)))
+    for spec, grid in grids.items():
         weights = sample_grid(grid, box_min, box_max, torch.from_numpy(truth[0]).float()).double().numpy()
         cells = []
         for motion in sorted(motions):
@@ -71,6 +88,26 @@ def main() -> None:
             ]) * 1e3
             cells.append(f"{error.mean():7.2f} / {np.percentile(error, 95):5.1f}")
         print(f"{spec:8s}", "  ".join(f"{c:>16s}" for c in cells), flush=True)
+    train = [i for i, name in enumerate(frames.names) if name.startswith("train_")][::10]
+    starts = tuple(int(b) for b in dataset.subject.init_bones)
+    print(f"\n2. root finding of the true surface in {len(train)} training frames (share of points: missed / spurious)")
+    print(f"{'grid':8s}", "  ".join(f"{part:>13s}" for part in [*PARTS, "other"]))
+    for spec, grid in grids.items():
+        config = DeformerConfig(init_bones=starts, init_top_k=2, init_parts=init_parts(dataset.subject.parents, starts))
+        deformer = FastSnarfDeformer(grid, box_min, box_max, config)
+        missed, spurious = [], []
+        for i in train:
+            posed = _lbs(own, frames.bone_transforms[i].astype(np.float64), truth[0])
+            frame = deformer.prepare(torch.from_numpy(frames.bone_transforms[i]).float())
+            with torch.no_grad():
+                candidates, valid = deformer.canonicalize(torch.from_numpy(posed).float(), frame)
+            error = np.linalg.norm(candidates.numpy() - truth[0][:, None], axis=-1)
+            valid = valid.numpy()
+            missed.append(~(valid & (error < 0.01)).any(axis=1))
+            spurious.append((valid & (error > 0.01)).any(axis=1))
+        missed, spurious = np.mean(missed, axis=0), np.mean(spurious, axis=0)
+        cells = [f"{missed[part_of == p].mean():.2f} / {spurious[part_of == p].mean():.2f}" for p in [*PARTS, "other"]]
+        print(f"{spec:8s}", "  ".join(f"{c:>13s}" for c in cells), flush=True)
 
 
 if __name__ == "__main__":
