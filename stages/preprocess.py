@@ -111,7 +111,7 @@ class PreprocessOptions:
             "weight_smoothing": self.weight_smoothing if self.weight_smoothing is not None else
             f"default: template {TEMPLATE_WEIGHT_SMOOTHING}, bones {BoneWeightConfig().smoothing_iterations}",
             # Only when set, so that datasets made with inverse-distance weights keep their config.
-            **({"weight_spread": self.weight_blur.spread} if self.weight_blur.spread is not None else {}),
+            **({"weight_spread": spread} if (spread := self.weight_blur.spread) is not None else {}),
         }
 
     @property

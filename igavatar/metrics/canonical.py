@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import trimesh
 
 from igavatar.body.rotations import invert_rigid
 from igavatar.body.skeleton import forward_kinematics
@@ -163,10 +162,6 @@ def canonical_from_rest(
     transforms = np.einsum("vk,vkij->vij", weights_value, rest_to_canonical[weights_index])
     homogeneous = np.concatenate([rest_vertices, np.ones((len(rest_vertices), 1))], axis=1)
     return np.einsum("vij,vj->vi", transforms, homogeneous)[:, :3]
-
-
-def as_trimesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
-    return trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
 
 
 def canonical_shape_report(

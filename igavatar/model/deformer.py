@@ -429,16 +429,22 @@ class FastSnarfDeformer(nn.Module):
             init_weights_last=init_weights_last,
         )
 
-    def _start_weights(self, weights: torch.Tensor, init_bones: torch.Tensor, channel_dim: int) -> torch.Tensor:
-        """The weight each start bone is ranked by, from a grid with bones along `channel_dim`:
-        its part's summed weight with `init_parts`, else its own. Shape: the grid's with I0 channels."""
-        parts = self.config.init_parts
-        if parts is None:
-            return weights.index_select(channel_dim, init_bones)
-        shape = list(weights.shape)
-        shape[channel_dim] = len(init_bones)
-        index = torch.tensor(parts, dtype=torch.long, device=weights.device)
-        return weights.new_zeros(shape).index_add_(channel_dim, index, weights)
+    def _start_weight_grid(self, init_bones: torch.Tensor) -> torch.Tensor:
+        """(I0, D, H, W) the weight each start bone is ranked by: its part's summed weight with
+        `init_parts`, else its own; made once per grid, starts and device (like the channel-last copy)."""
+        grid = self.weights_grid
+        key = (grid.data_ptr(), grid._version, grid.device, tuple(init_bones.tolist()))
+        cached = getattr(self, "_start_weights_cache", None)
+        if cached is None or cached[0] != key:
+            weights = grid.detach()
+            if self.config.init_parts is None:
+                start = weights[init_bones]
+            else:
+                index = torch.tensor(self.config.init_parts, dtype=torch.long, device=weights.device)
+                start = weights.new_zeros((len(init_bones), *weights.shape[1:])).index_add_(0, index, weights)
+            cached = (key, start)
+            self._start_weights_cache = cached
+        return cached[1]
 
     def _channel_last_weights(self, init_bones: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(D, H, W, J) weights and (D, H, W, I0) init-bone weights, made once per grid and device."""
@@ -448,7 +454,7 @@ class FastSnarfDeformer(nn.Module):
         cached = getattr(self, "_weights_last_cache", None)
         if cached is None or cached[0] != key:
             weights_last = grid.detach().permute(1, 2, 3, 0).contiguous()
-            cached = (key, weights_last, self._start_weights(weights_last, init_bones, channel_dim=3).contiguous())
+            cached = (key, weights_last, self._start_weight_grid(init_bones).permute(1, 2, 3, 0).contiguous())
             self._weights_last_cache = cached
         return cached[1], cached[2]
 
@@ -485,8 +491,7 @@ class FastSnarfDeformer(nn.Module):
             self_weight = kernel.sample_diagonal(frame.init_weights_last, frame.box_min, frame.box_max, x_init.contiguous())
         else:
             init_weights = sample_grid(
-                self._start_weights(frame.weights_grid.detach(), frame.init_bones, channel_dim=0),
-                frame.box_min, frame.box_max, x_init.reshape(-1, 3),
+                self._start_weight_grid(frame.init_bones), frame.box_min, frame.box_max, x_init.reshape(-1, 3),
             ).reshape(num_points, num_init, num_init)
             self_weight = torch.diagonal(init_weights, dim1=1, dim2=2)
         order = self_weight.topk(top_k, dim=1).indices

@@ -209,8 +209,7 @@ def build_skinning_grid(
     k = min(int(k), vertices_np.shape[0])
 
     points = positions.reshape(-1, 3).numpy()
-    tree = cKDTree(vertices_np)
-    distance, index = tree.query(points, k=k)
+    distance, index = cKDTree(vertices_np).query(points, k=k)
     distance = distance.reshape(-1, k)
     index = index.reshape(-1, k)
     # The floor keeps a voxel sitting on a vertex finite; it then takes (almost) that vertex's weights.

@@ -6,7 +6,7 @@ Two tables per grid, from a synthetic capture's true clothed surface in the cano
    against its own per-vertex weights (which is how the scans were made): the floor that grid sets
    on posed geometry, mean / p95 vertex error in mm per motion.
 2. Root finding: the surface posed by its own weights into every 10th training frame and root-found
-   back with the grid (the default deformer settings: the subject's start bones, top 2 ranked by
+   back with the grid (the `cpu` preset's deformer with the subject's start bones, ranked by
    part): per body part, the share of points with no root at their true canonical place ("missed":
    training can never put that surface where it belongs) and with a second valid root elsewhere
    ("spurious": training may put it there instead).
@@ -19,27 +19,29 @@ Two tables per grid, from a synthetic capture's true clothed surface in the cano
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from igavatar.body.skeleton import linear_blend_skinning
 from igavatar.avatar.canonical_report import canonical_truth
 from igavatar.avatar.dataset import read_dataset
 from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.subject import canonicalize, subject_from_capture
 from igavatar.metrics.canonical import REST_SURFACE_FILE
-from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer, init_parts
+from igavatar.model.deformer import FastSnarfDeformer, init_parts
 from igavatar.skinning.grid import build_skinning_grid, sample_grid
+from igavatar.training.config import preset
 
 #: Body parts of the root-finding table, by the prefix of an Anny bone name.
 PARTS = {"foot": ("toe", "foot"), "shin": ("lowerleg",), "thigh": ("upperleg",), "hand": ("finger", "metacarpal", "wrist")}
 
 
-def _lbs(weights: np.ndarray, transforms: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(V, J) weights, (J, 4, 4) transforms, (V, 3) points -> (V, 3) posed points."""
-    blended = np.einsum("vj,jab->vab", weights, transforms)
-    return np.einsum("vab,vb->va", blended[:, :3, :3], x) + blended[:, :3, 3]
+def _posed(weights: torch.Tensor, transforms: np.ndarray, x: torch.Tensor) -> np.ndarray:
+    """(V, J) weights, (J, 4, 4) transforms, (V, 3) points (float64) -> (V, 3) posed points."""
+    return linear_blend_skinning(x, weights, torch.from_numpy(transforms).double()).numpy()
 
 
 def main() -> None:
@@ -58,7 +60,8 @@ def main() -> None:
         own = np.zeros((len(truth[0]), dataset.subject.n_joints))
         np.put_along_axis(own, rest["weights_index"], rest["weights_value"], axis=1)
         dominant = rest["weights_index"][np.arange(len(own)), rest["weights_value"].argmax(axis=1)]
-    own /= own.sum(axis=1, keepdims=True)
+    own = torch.from_numpy(own / own.sum(axis=1, keepdims=True))
+    truth_v = torch.from_numpy(truth[0])
     names = dataset.subject.joint_names
     part_of = np.array([next((part for part, prefixes in PARTS.items() if names[j].startswith(prefixes)), "other")
                         for j in dominant])
@@ -70,6 +73,9 @@ def main() -> None:
     for i, name in enumerate(frames.names):
         if name.startswith("test_"):
             motions.setdefault(name.removeprefix("test_").rsplit("_", 1)[0], []).append(i)
+    train = [i for i, name in enumerate(frames.names) if name.startswith("train_")][::10]
+    # The surface posed by its own weights, once per frame (the reference every grid is held to).
+    truth_posed = {i: _posed(own, frames.bone_transforms[i], truth_v) for ids in [*motions.values(), train] for i in ids}
     grids = {}
     for spec in args.grids.split(","):
         kind, value = spec[0], float(spec[1:])
@@ -79,28 +85,26 @@ def main() -> None:
     print("1. posing error of the true surface (mean / p95 mm)")
     print(f"{'grid':8s}", "  ".join(f"{m:>16s}" for m in sorted(motions)))
     for spec, grid in grids.items():
-        weights = sample_grid(grid, box_min, box_max, torch.from_numpy(truth[0]).float()).double().numpy()
+        weights = sample_grid(grid, box_min, box_max, truth_v.float()).double()
         cells = []
         for motion in sorted(motions):
             error = np.concatenate([
-                np.linalg.norm(_lbs(weights, frames.bone_transforms[i], truth[0]) - _lbs(own, frames.bone_transforms[i], truth[0]), axis=1)
+                np.linalg.norm(_posed(weights, frames.bone_transforms[i], truth_v) - truth_posed[i], axis=1)
                 for i in motions[motion]
             ]) * 1e3
             cells.append(f"{error.mean():7.2f} / {np.percentile(error, 95):5.1f}")
         print(f"{spec:8s}", "  ".join(f"{c:>16s}" for c in cells), flush=True)
-    train = [i for i, name in enumerate(frames.names) if name.startswith("train_")][::10]
     starts = tuple(int(b) for b in dataset.subject.init_bones)
+    config = replace(preset("cpu").avatar.deformer, init_bones=starts, init_parts=init_parts(dataset.subject.parents, starts))
     print(f"\n2. root finding of the true surface in {len(train)} training frames (share of points: missed / spurious)")
     print(f"{'grid':8s}", "  ".join(f"{part:>13s}" for part in [*PARTS, "other"]))
     for spec, grid in grids.items():
-        config = DeformerConfig(init_bones=starts, init_top_k=2, init_parts=init_parts(dataset.subject.parents, starts))
         deformer = FastSnarfDeformer(grid, box_min, box_max, config)
         missed, spurious = [], []
         for i in train:
-            posed = _lbs(own, frames.bone_transforms[i].astype(np.float64), truth[0])
             frame = deformer.prepare(torch.from_numpy(frames.bone_transforms[i]).float())
             with torch.no_grad():
-                candidates, valid = deformer.canonicalize(torch.from_numpy(posed).float(), frame)
+                candidates, valid = deformer.canonicalize(torch.from_numpy(truth_posed[i]).float(), frame)
             error = np.linalg.norm(candidates.numpy() - truth[0][:, None], axis=-1)
             valid = valid.numpy()
             missed.append(~(valid & (error < 0.01)).any(axis=1))
