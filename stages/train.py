@@ -71,6 +71,8 @@ class TrainOptions:
     beta_init: float | None = None
     beta_final: float | None = None
     free_space_weight: float | None = None
+    table_adam: str | None = None
+    table_lr_factor: float | None = None
     seed: int = 0
     device: str = "auto"
     resume: bool = False
@@ -82,6 +84,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
         samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
         sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form,
+        table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
     )
     weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight))
                if value is not None}

@@ -77,7 +77,7 @@ def test_resume_continues_exactly(small_run, tmp_path):
 
 def test_every_learned_part_is_optimized_including_non_rigid(small_run):
     trainer = _trainer(small_run / "dataset", steps=4, nonrigid_start_fraction=0.0)
-    optimized = {id(p) for group in trainer.optimizer.param_groups for p in group["params"]}
+    optimized = {id(p) for group in trainer.param_groups() for p in group["params"]}
     names = {n for n, p in trainer.avatar.named_parameters() if id(p) not in optimized}
     assert not names, f"parameters missing from the optimizer: {names}"
     before = {n: p.detach().clone() for n, p in trainer.avatar.named_parameters() if n.startswith("nonrigid.")}
@@ -176,6 +176,27 @@ def test_loaded_model_poses_like_the_dataset_and_mesh_vertices_map_back(small_ru
     assert (error < 1e-3).float().mean() > 0.95, float((error < 1e-3).float().mean())
 
 
+@pytest.mark.parametrize("table_adam", ["sparse", "dense"])
+def test_hash_table_adam_sparse_moves_only_reached_entries_dense_also_the_rest(small_run, table_adam):
+    trainer = _trainer(small_run / "dataset", steps=4, table_adam=table_adam)
+    table = trainer.avatar.sdf_field.encoding.table
+    for _ in range(2):
+        trainer.train_step()
+    before = table.detach().clone()
+    trainer.train_step()
+    groups = trainer.param_groups()
+    assert groups[0]["params"] == [table] and len(groups) == 3
+    assert groups[0]["lr"] == pytest.approx(trainer.config.lr * trainer.learning_rate_factor(2))
+    moved, reached = table.detach() != before, table.grad != 0   # the grad of the last step
+    assert bool(reached.any()) and not bool(reached.all())
+    if table_adam == "sparse":
+        assert torch.equal(moved, reached), "SparseAdam moves exactly the entries this step reached"
+        assert bool((trainer.table_optimizer.state[table]["steps"] == 0).any())
+    else:
+        assert trainer.table_optimizer is None
+        assert bool((moved & ~reached).any()), "torch's Adam moves entries reached only on earlier steps"
+
+
 def test_sdf_encoding_override_and_beta_cap_schedule(small_run):
     from igavatar.errors import InputError
     from igavatar.training.config import MLP_SDF, preset, with_overrides
@@ -185,6 +206,12 @@ def test_sdf_encoding_override_and_beta_cap_schedule(small_run):
     assert with_overrides(preset("tiny")).avatar.sdf.use_hash_grid is True
     with pytest.raises(InputError, match="--sdf-encoding"):
         with_overrides(preset("tiny"), sdf_encoding="siren")
+    with pytest.raises(InputError, match="--table-adam"):
+        with_overrides(preset("tiny"), table_adam="lazy")
+    with pytest.raises(InputError, match="--table-lr-factor"):
+        with_overrides(preset("tiny"), table_lr_factor=0.0)
+    assert preset("cpu").table_lr_factor == 2.0 and preset("paper").table_lr_factor == 1.0
+    assert preset("cpu").table_adam == preset("paper").table_adam == "sparse"
     cpu = preset("cpu")
     assert cpu.beta_final is not None and preset("paper").beta_final is None
 
@@ -206,7 +233,7 @@ def test_mlp_only_sdf_trains_without_a_hash_table(small_run):
     torch.manual_seed(0)
     avatar = build_avatar(config, dataset.subject, dataset.data["pose_dim"])
     trainer = Trainer(config, training_data(dataset), avatar)
-    assert trainer.optimizer.param_groups[0]["params"] == []  # the hash-table group is empty
+    assert trainer.param_groups()[0]["params"] == []  # the hash-table group is empty
     before = [p.detach().clone() for p in trainer.avatar.sdf_field.parameters()]
     logs = [trainer.train_step() for _ in range(2)]
     assert all(np.isfinite(l["loss"]) for l in logs)

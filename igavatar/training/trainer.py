@@ -42,7 +42,7 @@ from igavatar.render.sampler import RaySamples, sample_along_rays
 from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
-from igavatar.training.optim import adam
+from igavatar.training.optim import SparseAdam, adam
 from igavatar.training.visual_hull import CanonicalHull, canonical_visual_hull, free_space_loss
 
 #: Prepared frames kept in memory (each is a (12, D, H, W) blended-transform grid).
@@ -76,11 +76,15 @@ class Trainer:
         table = [p for n, p in avatar.named_parameters() if n.startswith("sdf_field.encoding.")]
         beta = [p for n, p in avatar.named_parameters() if n.startswith("density.")]
         networks = [p for n, p in avatar.named_parameters() if not n.startswith(("sdf_field.encoding.", "density."))]
-        self._base_lrs = [config.lr, config.lr * config.network_lr_factor, config.lr * config.beta_lr_factor]
-        self.optimizer = adam(
-            [{"params": group, "lr": lr} for group, lr in zip((table, networks, beta), self._base_lrs)],
-            betas=(0.9, 0.99), eps=config.adam_eps,
-        )
+        self._base_lrs = [config.lr * config.table_lr_factor, config.lr * config.network_lr_factor, config.lr * config.beta_lr_factor]
+        groups = [{"params": group, "lr": lr} for group, lr in zip((table, networks, beta), self._base_lrs)]
+        # The table's entries are reached only where samples fall; tiny-cuda-nn's Adam leaves the
+        # others alone, torch's moves them on their momentum (optim.SparseAdam says why that matters).
+        self.table_optimizer: SparseAdam | None = None
+        if config.table_adam == "sparse":
+            self.table_optimizer = SparseAdam(groups[:1], betas=(0.9, 0.99), eps=config.adam_eps)
+            groups = groups[1:]
+        self.optimizer = adam(groups, betas=(0.9, 0.99), eps=config.adam_eps)
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
         self.hull: CanonicalHull | None = None
         self._hull_cells_cache: torch.Tensor | None = None
@@ -108,7 +112,7 @@ class Trainer:
 
     def _apply_schedule(self) -> None:
         factor = self.learning_rate_factor(self.step)
-        for group, base in zip(self.optimizer.param_groups, self._base_lrs):
+        for group, base in zip(self.param_groups(), self._base_lrs):
             group["lr"] = base * factor
         start = int(self.config.nonrigid_start_fraction * self.total_steps)
         window = max(1, int(self.config.nonrigid_window_fraction * self.total_steps))
@@ -119,6 +123,11 @@ class Trainer:
         if self.config.regularizer == "hybrid-pe":
             anneal = max(1, int(self.config.hybrid_pe_anneal_fraction * self.total_steps))
             self.avatar.sdf_field.set_level_weights(self.step / anneal)
+
+    def param_groups(self) -> list[dict]:
+        """The table's, the networks' and beta's parameter groups, in that order."""
+        table = self.table_optimizer.param_groups if self.table_optimizer is not None else []
+        return table + self.optimizer.param_groups
 
     def prepared_frame(self, index: int) -> PreparedFrame:
         """The deformer's per-frame precomputation, cached (the skinning grid is fixed)."""
@@ -242,11 +251,15 @@ class Trainer:
         loss = total_loss(terms, config.loss_weights)
 
         self.optimizer.zero_grad(set_to_none=True)
+        if self.table_optimizer is not None:
+            self.table_optimizer.zero_grad(set_to_none=True)
         # A step whose rays hit no valid sample (all patches in empty space) has a constant loss:
         # nothing to learn from it, so it is counted but not stepped.
         if loss.requires_grad:
             loss.backward()
             self.optimizer.step()
+            if self.table_optimizer is not None:
+                self.table_optimizer.step()
         self.step += 1
 
         num_samples = int(canonical_samples.valid.sum())
@@ -258,7 +271,7 @@ class Trainer:
         logs.update(
             loss=float(loss.detach()), psnr=psnr_from_mse(float(((out.rgb.detach() - target) ** 2).mean())),
             beta=float(self.avatar.density.beta.detach()), samples=num_samples, step_seconds=elapsed,
-            occupied=self.canonical_grid.occupied_fraction, lr=self.optimizer.param_groups[0]["lr"],
+            occupied=self.canonical_grid.occupied_fraction, lr=self.param_groups()[0]["lr"],
         )
         return logs
 
@@ -287,6 +300,7 @@ class Trainer:
         return {
             "avatar": self.avatar.state_dict(),
             "optimizer": self.optimizer.state_dict(),
+            "table_optimizer": self.table_optimizer.state_dict() if self.table_optimizer is not None else None,
             "canonical_grid": self.canonical_grid.state_dict(),
             "generator": self.generator.get_state(),
             "step": self.step,
@@ -303,6 +317,8 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         for group, saved in zip(self.optimizer.param_groups, flags):
             group.update(saved)
+        if self.table_optimizer is not None:
+            self.table_optimizer.load_state_dict(state["table_optimizer"])
         self.canonical_grid.load_state_dict(state["canonical_grid"])
         self.generator.set_state(state["generator"].to(torch.uint8))
         self.step = int(state["step"])

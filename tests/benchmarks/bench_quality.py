@@ -58,14 +58,19 @@ EXTRA_SUBJECTS: dict[str, list[str]] = {
 PREPROCESS_ARGS: dict[str, list[str]] = {
     **{f"{name}-hull": ["--shape-prior", "visual-hull"] for name in SUBJECTS},
     # The template's skinning weights blurred by n passes (the default is 15; 30 was InstantAvatar's and ours before).
-    **{f"{name}-sharp{n}": ["--weight-smoothing", str(n)] for name in SUBJECTS for n in (2, 8, 15, 30)},
-    # The template's own weights near the body (distance-adaptive kernel, spread 1), the 15-pass blur far away.
+    # (the blurred grid alone: --weight-spread 0; 15 passes were the default before the spread)
+    **{f"{name}-sharp{n}": ["--weight-smoothing", str(n), "--weight-spread", "0"] for name in SUBJECTS for n in (2, 8, 15, 30)},
+    # The template's own weights near the body (distance-adaptive kernel, spread 1; the default), the 15-pass blur far away.
     **{f"{name}-spread": ["--weight-spread", "1"] for name in SUBJECTS},
 }
 VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybrid-pe", "mlp")
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
 SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-adjacent": ["--regularizer", "smooth", "--smooth-pairs", "adjacent"],
+    # torch's dense Adam on the hash table at the table's old learning rate (the default before:
+    # unreached entries drift on momentum), and tiny-cuda-nn's sparse rule at that rate.
+    "smooth-dense-adam": ["--regularizer", "smooth", "--table-adam", "dense", "--table-lr-factor", "1"],
+    "smooth-sparse-lr1": ["--regularizer", "smooth", "--table-adam", "sparse", "--table-lr-factor", "1"],
     "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
     "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
     # The cpu preset before the geometry work of issue 16 (beta 0.075 -> 3 mm, Eq. 9 at weight 1).
