@@ -182,8 +182,8 @@ def preprocess(
     weight_spread: Annotated[Optional[float], typer.Option(
         help="Near a template (within 5 cm, handing over by 15 cm) take its own skinning weights, blended by a "
              "Gaussian of width 1 cm + SPREAD x the distance to the body, instead of the blurred grid, which "
-             "leaks weight between the thighs and from the arms into the flanks. Experimental: better on novel "
-             "poses in the benchmark, but one run of nine lost a foot \\[default: off].", min=0.0)] = None,
+             "leaks weight between the thighs and from the arms into the flanks; 0 turns it off (the blurred grid "
+             "everywhere) \\[default: 1].", min=0.0)] = None,
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
     smpl_model: Annotated[
         Optional[Path],

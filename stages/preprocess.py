@@ -77,10 +77,11 @@ HULL_CELL_M = 0.02
 #: Fewer passes (2, 8) were better still on two subjects but cut a foot off the third.
 TEMPLATE_WEIGHT_SMOOTHING = 15
 #: --weight-spread's default: near a template, weights by the distance-adaptive kernel with this
-#: growth, handing over to the blurred grid further out (None: the blurred grid everywhere). Not the
-#: default yet: spread 1 lowered out-of-distribution CD-L1 on all nine (subject, seed) runs and
-#: removed most of the leg-gap web, but one run lost a foot (tests/benchmarks/results/weight-spread.md).
-TEMPLATE_WEIGHT_SPREAD: float | None = None
+#: growth, handing over to the blurred grid further out (None: the blurred grid everywhere). Spread 1
+#: lowered out-of-distribution CD-L1 on all nine (subject, seed) runs and removed most of the
+#: leg-gap web; the foot one run lost with it was the hash table's dense-Adam drift, gone with
+#: tiny-cuda-nn's sparse rule (tests/benchmarks/results/weight-spread.md, sparse-adam.md).
+TEMPLATE_WEIGHT_SPREAD: float | None = 1.0
 CONTACT_SHEET_FRAMES = 12
 
 
@@ -117,7 +118,8 @@ class PreprocessOptions:
     @property
     def weight_blur(self) -> WeightBlur:
         spread = TEMPLATE_WEIGHT_SPREAD if self.weight_spread is None else self.weight_spread
-        return WeightBlur(self.weight_smoothing, spread)
+        # --weight-spread 0 turns the kernel off: the blurred grid everywhere.
+        return WeightBlur(self.weight_smoothing, spread if spread else None)
 
 
 @dataclass(frozen=True)

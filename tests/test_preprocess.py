@@ -160,7 +160,8 @@ def test_unknown_body_model_via_cli(small_run, cli_runner, tmp_path):
 
 
 def test_weight_smoothing_shapes_the_grid_and_is_part_of_the_dataset_key(small_run, tmp_path):
-    sharp = PreprocessOptions(capture=small_run / "capture", out=tmp_path / "dataset", max_size=64, weight_smoothing=0)
+    sharp = PreprocessOptions(capture=small_run / "capture", out=tmp_path / "dataset", max_size=64, weight_smoothing=0,
+                              weight_spread=0.0)  # the blur alone
     run_preprocess(sharp)
     assert read_artifact(tmp_path / "dataset", expected="dataset")["config"]["weight_smoothing"] == 0
     with np.load(tmp_path / "dataset" / "subject.npz") as stored:
@@ -174,13 +175,16 @@ def test_weight_smoothing_shapes_the_grid_and_is_part_of_the_dataset_key(small_r
 
 
 def test_weight_spread_keeps_the_template_weights_and_is_part_of_the_dataset_key(small_run, tmp_path):
-    """--weight-spread gives the voxels near the template the distance-adaptive kernel's weights: the
-    template's own weights survive there (sharper than the default 15 passes), and it is another dataset."""
-    default = PreprocessOptions(capture=small_run / "capture", out=tmp_path / "dataset", max_size=64)
-    run_preprocess(default)
+    """The spread (on by default) gives the voxels near the template the distance-adaptive kernel's
+    weights: the template's own weights survive there, sharper than the 15-pass blur that
+    --weight-spread 0 leaves everywhere, and the two are different datasets."""
+    off = PreprocessOptions(capture=small_run / "capture", out=tmp_path / "dataset", max_size=64, weight_spread=0.0)
+    run_preprocess(off)
+    config = read_artifact(tmp_path / "dataset", expected="dataset")["config"]
+    assert "weight_spread" not in config, "off keeps the key of datasets made before the option"
     with np.load(tmp_path / "dataset" / "subject.npz") as stored:
         blurred = stored["skinning_grid"]
-    spread = run_preprocess(PreprocessOptions(**{**default.__dict__, "weight_spread": 1.0}))
+    spread = run_preprocess(PreprocessOptions(**{**off.__dict__, "weight_spread": None}))
     assert "skipped" not in spread
     config = read_artifact(tmp_path / "dataset", expected="dataset")["config"]
     assert config["weight_spread"] == 1.0
