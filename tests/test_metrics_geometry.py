@@ -284,6 +284,21 @@ def test_iou_accepts_unwelded_soup():
     assert volumetric_iou(soup, cube, n_points=20_000)["iou"] == 1.0
 
 
+def test_iou_keeps_a_closed_indexed_mesh_unwelded_when_two_vertices_nearly_meet():
+    """A posed prediction can bring two distinct vertices within trimesh's 1e-8 merge tolerance
+    (a crease compressed by a deep pose); welding them made its edges non-manifold and the frame
+    lost its IoU. An indexed mesh that is closed as given is taken as given."""
+    sphere = icosphere(0.5, 3)
+    vertices = np.asarray(sphere.vertices, np.float64).copy()
+    a = int(sphere.faces[0, 0])
+    b = int(sphere.faces[0, 1])  # an edge neighbour of a
+    vertices[b] = vertices[a]  # float32 posing can land them on the very same position
+    welded = trimesh.Trimesh(vertices, sphere.faces, process=True)
+    assert len(welded.vertices) == len(vertices) - 1 and not welded.is_watertight  # what welding did
+    result = volumetric_iou((vertices, sphere.faces), sphere, n_points=20_000)
+    assert result["pred_watertight"] is True and result["iou"] > 0.98
+
+
 # --------------------------------------------------------------------------- bundle and validation
 
 

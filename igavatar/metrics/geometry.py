@@ -445,13 +445,31 @@ def surface_metrics(
 
 
 def _watertight_trimesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[trimesh.Trimesh, int]:
-    """Welded trimesh of the arrays and its number of non-manifold or boundary edges."""
-    # process=True welds duplicate vertices; a soup is not watertight until welded.
-    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
+    """Trimesh of the arrays and its number of non-manifold or boundary edges: as indexed when that
+    is closed, else welded.
+
+    A soup (a scan written face by face) is not watertight until its duplicate vertices are welded.
+    An indexed mesh that is closed as given must not be welded: a posed prediction (canonical
+    marching cubes, posed by skinning) can bring two distinct vertices within trimesh's 1e-8 merge
+    tolerance where a deep pose compresses a crease, and welding them makes the edges around them
+    non-manifold (seen in a deep squat: 2 such edges, so IoU was skipped for the frame).
+    """
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    bad_edges = _bad_edge_count(mesh)
+    if bad_edges:
+        welded = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
+        welded_bad = _bad_edge_count(welded)
+        if welded_bad < bad_edges:
+            mesh, bad_edges = welded, welded_bad
+    return mesh, bad_edges
+
+
+def _bad_edge_count(mesh: trimesh.Trimesh) -> int:
+    """Undirected edges not shared by exactly two faces."""
     edges = np.sort(np.asarray(mesh.faces, np.int64)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     # One integer key per undirected edge: a 1D unique is ~10x faster than np.unique(axis=0).
     _, edge_count = np.unique(edges[:, 0] * len(mesh.vertices) + edges[:, 1], return_counts=True)
-    return mesh, int(np.sum(edge_count != 2))
+    return int(np.sum(edge_count != 2))
 
 
 def contains_points(mesh: trimesh.Trimesh, points: np.ndarray, watertight: bool) -> np.ndarray:
