@@ -44,11 +44,12 @@ from igavatar.capture.images import resize_image, resize_mask, resize_plan, scal
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_smpl import smpl_model_for
-from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
+from igavatar.capture.ghost_limbs import PosedBones
+from igavatar.capture.visual_hull import GhostTest, MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import InputError
 from igavatar.geometry.projection import project_points
 from igavatar.skinning.bone_weights import BoneWeightConfig, build_bone_skinning_grid
-from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box
+from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box, sample_skinning_weights
 from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
@@ -64,8 +65,9 @@ MAX_HULL_VIEWS = 64
 #: visual-hull = the hull even when there is a template (it bounds clothes and hair, which the
 #: naked template does not), with the template's skinning weights.
 SHAPE_PRIORS = ("auto", "visual-hull")
-#: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept).
-HULL_PRIOR_VERSION = 2
+#: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept;
+#: 3: space that skinning lands inside another limb is not kept).
+HULL_PRIOR_VERSION = 3
 #: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
 HULL_BOX_SQUEEZE = 3.0
 #: Grid spacing (meters) of the hull prior.
@@ -255,9 +257,15 @@ def _hull_prior(
     posed boxes.
     """
     lo, hi = search_box(canonical.canonical_joints)
-    skin = grid_skin(_weights_grid(subject, canonical, lo, hi, resolution, blur), lo, hi, canonical.bone_transforms)
+    search_weights = _weights_grid(subject, canonical, lo, hi, resolution, blur)
+    skin = grid_skin(search_weights, lo, hi, canonical.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
-    hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M)
+    # Cells that ride rigidly into another limb (ghost legs beside spread canonical legs) are dropped.
+    ghost_test = GhostTest(
+        bones=PosedBones.from_skeleton(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms),
+        weights=lambda x: sample_skinning_weights(search_weights, lo, hi, x),
+    )
+    hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M, ghost_test=ghost_test)
     if hull is None:
         return None
     vertices = hull.vertices

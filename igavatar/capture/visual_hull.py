@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from igavatar.capture.ghost_limbs import PosedBones, misplaced_votes
+
 #: (frame index, (P, 3) canonical points) -> (P, 3) world points of that frame.
 SkinFn = Callable[[int, torch.Tensor], torch.Tensor]
 
@@ -160,6 +162,19 @@ def free_points(seen: torch.Tensor, inside: torch.Tensor, min_outside_fraction: 
 
 
 @dataclass(frozen=True)
+class GhostTest:
+    """What the ghost-limb rule needs: the skeleton, and the weights `skin` blends.
+
+    Attributes:
+        bones: segments and per-frame transforms (indexed by the views' frame numbers).
+        weights: (P, 3) canonical points -> (P, J) their skinning weights.
+    """
+
+    bones: PosedBones
+    weights: Callable[[torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
 class HullPrior:
     """The kept part of the visual hull as a closed mesh in canonical space.
 
@@ -169,6 +184,7 @@ class HullPrior:
         cell_size: meters between the grid's points.
         views: how many views voted.
         touches_box: the kept region reaches the search box's side (the box may cut the subject).
+        ghost_cells: grid points dropped as landing inside another limb (0 when not tested).
     """
 
     vertices: torch.Tensor
@@ -176,6 +192,7 @@ class HullPrior:
     cell_size: float
     views: int
     touches_box: bool
+    ghost_cells: int = 0
 
 
 def hull_prior_mesh(
@@ -188,17 +205,21 @@ def hull_prior_mesh(
     min_seen_fraction: float = 0.5,
     min_volume_ratio: float = 0.3,
     max_collapsed_fraction: float = 0.5,
+    ghost_test: GhostTest | None = None,
+    max_ghost_fraction: float = 0.5,
 ) -> HullPrior | None:
     """Mesh the visual hull's kept cells in a canonical search box; None if nothing is kept.
 
     A grid point is kept when it is not free (see `free_points`), at least `min_seen_fraction`
     of the views see it (a point no camera sees is no evidence of the subject), and skinning does
     not crush the space around it in more than `max_collapsed_fraction` of the views. The last
-    rule removes ghost limbs: with the legs spread in canonical space and together in every
+    rule removes folded space: with the legs spread in canonical space and together in every
     frame, blended weights fold the canonical gap between the legs onto the posed legs, inside
     every mask, where no silhouette can carve it; there the posed volume shrinks towards zero,
-    while on the body LBS moves space almost rigidly (ratio ~1). Of the kept points
-    the largest connected part is meshed, its inner cavities filled, after a slight blur so that
+    while on the body LBS moves space almost rigidly (ratio ~1). Space that rides rigidly into
+    another limb is not folded: with `ghost_test`, a point that skinning lands inside another
+    limb in more than `max_ghost_fraction` of the views is dropped too (ghost legs beside spread
+    canonical legs; igavatar.capture.ghost_limbs). Of the kept points the largest connected part is meshed, its inner cavities filled, after a slight blur so that
     the surface is not staircased at the grid's cells.
 
     Args:
@@ -207,6 +228,7 @@ def hull_prior_mesh(
         cell_size: grid spacing in meters.
         min_seen_fraction: of the views, how many must see a point for it to count.
         min_volume_ratio, max_collapsed_fraction: the crushed-space rule above.
+        ghost_test, max_ghost_fraction: the ghost-limb rule above (None: not tested).
     """
     from skimage.measure import marching_cubes
 
@@ -216,7 +238,16 @@ def hull_prior_mesh(
     votes = vote_masks(points, skin, views, mask_dilation_px, grid=(shape, spacing), min_volume_ratio=min_volume_ratio)
     free = free_points(votes.seen, votes.inside, min_outside_fraction, min_outside=2)
     crushed = votes.collapsed > max_collapsed_fraction * len(views.frames)
-    kept = (~free & ~crushed & (votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))).reshape(shape).numpy()
+    kept = ~free & ~crushed & (votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))
+    ghost_cells = 0
+    if ghost_test is not None:
+        candidates = torch.nonzero(kept).squeeze(1)
+        x_canonical = points[candidates]
+        misplaced = misplaced_votes(x_canonical, ghost_test.weights(x_canonical), skin, views.frames, ghost_test.bones)
+        ghost = candidates[misplaced > max_ghost_fraction * len(views.frames)]
+        kept[ghost] = False
+        ghost_cells = int(ghost.numel())
+    kept = kept.reshape(shape).numpy()
     labels, count = ndimage.label(kept)
     if count == 0:
         return None
@@ -232,7 +263,7 @@ def hull_prior_mesh(
     faces = faces.astype(np.int64)
     return HullPrior(
         vertices=torch.from_numpy(np.ascontiguousarray(vertices, np.float32)), faces=torch.from_numpy(faces),
-        cell_size=float(cell_size), views=len(views.frames), touches_box=touches,
+        cell_size=float(cell_size), views=len(views.frames), touches_box=touches, ghost_cells=ghost_cells,
     )
 
 
