@@ -19,6 +19,7 @@ from igavatar.metrics.geometry import (
     closest_points_on_mesh,
     closest_points_on_mesh_reference,
     evaluate_meshes,
+    evenly_spaced_vertices,
     keep_largest_component,
     normal_consistency_vertices,
     sample_surface_uniform,
@@ -306,7 +307,8 @@ def test_evaluate_meshes_prefilters_and_bundles():
     r1, r2 = 0.50, 0.51
     pred = trimesh.util.concatenate([icosphere(r1, 3), icosphere(0.05, 1, center=(2, 0, 0))])
     gt = icosphere(r2, 3)
-    metrics = evaluate_meshes(pred, gt, n_surface=1000, n_iou=100_000, seed=0)
+    # The scan's vertices as given (no even spacing), for the closed form below.
+    metrics = evaluate_meshes(pred, gt, n_surface=1000, n_iou=100_000, seed=0, paper_max_edge=None)
     assert isinstance(metrics, GeometryMetrics)
     assert metrics.n_dropped_components == 1
     # With the floater removed, the vertex Chamfer is the closed form of aligned spheres.
@@ -317,10 +319,58 @@ def test_evaluate_meshes_prefilters_and_bundles():
     report = metrics.to_dict()
     assert report["paper_protocol"]["chamfer_l2_cm2"] == metrics.chamfer_l2_vertices_cm2
     assert "averaged, not summed" in report["paper_protocol"]["description"]
+    assert "vertices as given" in report["paper_protocol"]["description"] and report["paper_protocol"]["max_edge_mm"] is None
     assert report["surface_protocol"]["units"]["chamfer_l1"] == "mm"
     assert report["prefilter"]["n_dropped_components"] == 1
     skipped = evaluate_meshes(pred, gt, n_surface=200, n_iou=0)
     assert skipped.volumetric_iou is None and skipped.to_dict()["volumetric_iou"]["iou"] == "not computed"
+
+
+def _cube_with_one_dense_side(half: float, levels: int) -> trimesh.Trimesh:
+    """A cube whose +z side alone is split `levels` times (the same surface, tessellated unevenly)."""
+    cube = trimesh.creation.box(extents=(2 * half,) * 3)
+    top = np.flatnonzero(cube.triangles_center[:, 2] > half - 1e-9)
+    vertices, faces = cube.vertices, cube.faces
+    for _ in range(levels):
+        vertices, faces = trimesh.remesh.subdivide(vertices, faces, face_index=top)
+        top = np.flatnonzero(trimesh.Trimesh(vertices, faces, process=False).triangles_center[:, 2] > half - 1e-9)
+    return trimesh.Trimesh(vertices, faces)
+
+
+def test_evenly_spaced_vertices_split_long_edges_only_and_keep_the_surface():
+    dense = icosphere(0.05, 4)  # edges ~4 mm
+    v, f, n = evenly_spaced_vertices(dense.vertices, dense.faces, 0.01)
+    assert np.array_equal(v, dense.vertices) and np.array_equal(f, dense.faces)
+    np.testing.assert_allclose(n, dense.vertex_normals)
+    cube = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    v, f, n = evenly_spaced_vertices(cube.vertices, cube.faces, 0.01)
+    even = trimesh.Trimesh(v, f, process=False)
+    edges = np.linalg.norm(v[even.edges_unique[:, 0]] - v[even.edges_unique[:, 1]], axis=1)
+    assert edges.max() <= 0.01 and even.is_watertight
+    assert even.area == pytest.approx(cube.area, rel=1e-9)  # midpoint splits do not move the surface
+    assert np.allclose(np.abs(v).max(axis=1), 0.05)  # every new vertex lies on a side of the cube
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+
+
+def test_paper_protocol_does_not_depend_on_how_the_scan_is_tessellated():
+    """The same cube as scan, tessellated evenly or with one side 256 times denser: the vertex
+    protocol on the scan as given measures mostly that side; on evenly spaced vertices it does not."""
+    pred = icosphere(0.12, 4)
+    plain, uneven = _cube_with_one_dense_side(0.1, 0), _cube_with_one_dense_side(0.1, 4)
+    assert len(uneven.vertices) > 20 * len(plain.vertices)
+    raw = [evaluate_meshes(pred, scan, n_surface=2000, n_iou=0, paper_max_edge=None) for scan in (plain, uneven)]
+    even = [evaluate_meshes(pred, scan, n_surface=2000, n_iou=0) for scan in (plain, uneven)]
+    assert abs(raw[0].normal_consistency_vertices - raw[1].normal_consistency_vertices) > 0.5
+    # What is left is the uneven side's seam, where vertex normals average differently.
+    assert abs(even[0].normal_consistency_vertices - even[1].normal_consistency_vertices) < 0.02
+    assert abs(even[0].chamfer_l2_vertices_cm2 - even[1].chamfer_l2_vertices_cm2) < 0.05 * even[0].chamfer_l2_vertices_cm2  # 2.45 against 2.53 (the raw: 56.5 against 30.1)
+    assert even[0].paper_max_edge_mm == pytest.approx(10.0)
+    # A prediction equal to its scan is perfect on evenly spaced vertices too.
+    same = evaluate_meshes(plain, plain, n_surface=500, n_iou=0)
+    assert same.chamfer_l2_vertices_cm2 == 0.0 and same.normal_consistency_vertices == pytest.approx(1.0)
+    assert "split at their midpoints" in even[0].to_dict()["paper_protocol"]["description"]
+    # The surface protocol samples by area, so it never depended on the tessellation.
+    assert even[1].chamfer_l1_surface_mm == pytest.approx(raw[1].chamfer_l1_surface_mm)
 
 
 def test_bad_inputs_name_the_problem():
