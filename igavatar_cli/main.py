@@ -302,6 +302,8 @@ def export(
         bool, typer.Option(help="Also run marching cubes in posed space through the deformer (slow), to compare.")
     ] = False,
     exr: Annotated[bool, typer.Option(help="Write depth and normal maps (OpenEXR) of frontal views of each mesh.")] = False,
+    surface_level: Annotated[str, typer.Option(
+        help="Where the mesh is made: silhouette (the level set where the renderer's silhouette lies, ~3 beta outside the SDF's zero level) or zero (the zero level).")] = "silhouette",
     exr_size: Annotated[int, typer.Option(help="Size of the EXR maps in pixels.", min=8)] = 512,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\\\[default: ~/.cache/anny].")] = None,
@@ -320,6 +322,7 @@ def export(
         target_faces=target_faces, influences=influences, texture_size=texture_size, textured_faces=textured_faces,
         pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
         posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
+        surface_level=surface_level,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_export(options, progress=progress)
@@ -391,6 +394,8 @@ def eval_(
     geometry: Annotated[bool, typer.Option("--geometry/--no-geometry", help="Compare posed meshes with the scans.")] = True,
     images: Annotated[bool, typer.Option("--images/--no-images", help="Render test frames and compare PSNR/SSIM.")] = True,
     mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh.", min=16)] = 256,
+    surface_level: Annotated[str, typer.Option(
+        help="Where the mesh is made: silhouette (the level set where the renderer's silhouette lies, ~3 beta outside the SDF's zero level) or zero (the zero level).")] = "silhouette",
     surface_samples: Annotated[int, typer.Option(help="Points sampled per surface (surface protocol).", min=1)] = 10_000,
     iou_points: Annotated[int, typer.Option(help="Uniform points of the volumetric IoU (0 skips it).", min=0)] = 1_000_000,
     iou_open_meshes: Annotated[
@@ -419,7 +424,7 @@ def eval_(
         model=model or layout.model, out=out or layout.report, gt=gt, dataset=dataset, geometry=geometry,
         images=images, mesh_resolution=mesh_resolution, surface_samples=surface_samples, iou_points=iou_points,
         iou_open_meshes=iou_open_meshes, image_scale=image_scale, samples_per_ray=samples, image_frames=image_frames,
-        seed=seed, device=device,
+        seed=seed, device=device, surface_level=surface_level,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_eval(options, progress=progress)

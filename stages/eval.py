@@ -63,6 +63,7 @@ from igavatar.metrics.report import (
     mean_over_frames,
     metric_curves_image,
 )
+from igavatar.model.avatar import SURFACE_LEVELS
 from igavatar.model.render_avatar import render_posed_view
 from igavatar.avatar.canonical_report import canonical_section
 from stages.common import StageClock
@@ -99,6 +100,8 @@ class EvalOptions:
     image_frames: int | None = None
     seed: int = 0
     device: str = "auto"
+    surface_level: str = SURFACE_LEVELS[0]
+    """Where meshes are made: "silhouette" or "zero" (igavatar.model.avatar.SURFACE_LEVELS)."""
 
     def config(self) -> dict:
         """The options that change the numbers (recorded in the manifest)."""
@@ -109,6 +112,7 @@ class EvalOptions:
             "samples_per_ray": self.samples_per_ray, "image_frames": self.image_frames, "seed": self.seed,
             "device": self.device,
             "test_time_pose_refinement": False,
+            "surface_level": self.surface_level,
         }
 
 
@@ -167,6 +171,8 @@ def _check_options(options: EvalOptions) -> None:
         raise InputError(f"--samples {options.samples_per_ray}: expected >= 1")
     if options.image_frames is not None and options.image_frames < 0:
         raise InputError(f"--image-frames {options.image_frames}: expected >= 0 (0 = every test frame)")
+    if options.surface_level not in SURFACE_LEVELS:
+        raise InputError(f"--surface-level {options.surface_level!r}: choose one of {', '.join(SURFACE_LEVELS)}")
 
 
 @dataclass(frozen=True)
@@ -257,13 +263,14 @@ def _canonical_geometry(model: ModelArtifact, inputs: _Inputs, options: EvalOpti
     with clock("canonical_mesh_s"):
         raw_v, raw_f = canonical_mesh(model.avatar, resolution=options.mesh_resolution)
         if raw_f.shape[0] == 0:
-            raise InputError(f"{inputs.model_dir}: the model's SDF has no zero level set in its canonical box (empty mesh); "
+            raise InputError(f"{inputs.model_dir}: the model's SDF has no surface in its canonical box (empty mesh); "
                              "the model is not trained enough to evaluate its geometry (use --no-geometry)")
         vertices, faces, cleanup = clean_mesh(raw_v, raw_f, keep_largest=True)
     record = {
         "canonical_vertices": int(vertices.shape[0]), "canonical_faces": int(faces.shape[0]),
         "components_dropped": cleanup["components_dropped"], "faces_dropped": cleanup["faces_dropped_in_components"],
         "watertight": is_watertight(vertices, faces),
+        "surface_level": options.surface_level, "surface_level_m": model.avatar.surface_level(),
     }
     notes.append(
         f"pre-filter: the canonical mesh's largest component was kept; {cleanup['components_dropped']} other "
@@ -376,6 +383,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     with clock("load_s"):
         model = load_model(inputs.model_dir, device)
         _check_compatible(model, inputs.dataset)
+        model.avatar.surface_level_mode = options.surface_level
     notes: list[str] = []
     canonical = _canonical_geometry(model, inputs, options, clock, notes, progress) if options.geometry else None
     names = list(inputs.test.names)

@@ -81,6 +81,7 @@ from igavatar.mesh.maps import CAMERA_FOV_DEG, frontal_camera, mesh_maps
 from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm, sparse_weight_sets
 from igavatar.mesh.texture import png_bytes
 from igavatar.mesh.textured_mesh import TexturedMesh, textured_mesh, textured_obj
+from igavatar.model.avatar import SURFACE_LEVELS
 from igavatar.model.posed import PosedAvatar
 from stages.common import StageClock, skipped, unchanged
 from stages.kernels import build_kernels, resolve_device
@@ -121,6 +122,8 @@ class ExportOptions:
     device: str = "auto"
     anny_cache: Path | None = None
     force: bool = False
+    surface_level: str = SURFACE_LEVELS[0]
+    """Where meshes are made: "silhouette" or "zero" (igavatar.model.avatar.SURFACE_LEVELS)."""
 
     def config(self) -> dict:
         """The options that change the mesh artifact (recorded in the manifest, compared to skip)."""
@@ -131,6 +134,7 @@ class ExportOptions:
             "texture_size": self.texture_size, "textured_faces": self.textured_faces, "pose": None if self.pose is None else str(self.pose),
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
+            "surface_level": self.surface_level,
         }
 
 
@@ -182,6 +186,8 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError("--frame and --all exclude each other: give one frame, or all of them")
     if options.frame is not None and options.frame < 0:
         raise InputError(f"--frame {options.frame}: expected a frame index >= 0")
+    if options.surface_level not in SURFACE_LEVELS:
+        raise InputError(f"--surface-level {options.surface_level!r}: choose one of {', '.join(SURFACE_LEVELS)}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,6 +279,7 @@ def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, 
     record = {
         "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
         "watertight": watertight, "resolution": options.resolution, "coarse_resolution": options.coarse_resolution,
+        "surface_level": options.surface_level, "surface_level_m": avatar.surface_level(),
         "raw_vertices": int(raw_vertices.shape[0]), "raw_faces": int(raw_faces.shape[0]),
         **{key: cleanup[key] for key in ("components", "components_dropped", "faces_dropped_in_components",
                                          "taubin_steps", "decimated")},
@@ -470,6 +477,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     _check_memory(options, model_path)
     with clock("load_s"):
         model = load_model(model_path, device)
+        model.avatar.surface_level_mode = options.surface_level
         poses = load_export_poses(options, model, progress) if options.pose is not None else None
     inputs = [InputRecord(model_path, "model"), *(poses.inputs if poses else ())]
     if not options.force and unchanged(out, "mesh", options.config(), inputs):

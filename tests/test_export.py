@@ -28,7 +28,7 @@ from igavatar.mesh.gltf import (
     read_rigged_glb,
 )
 from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.model.avatar import Avatar
+from igavatar.model.avatar import Avatar, silhouette_offset
 from igavatar.training.config import preset
 from igavatar_cli.main import app
 from igavatar.avatar.model import load_model
@@ -64,6 +64,7 @@ def sphere_avatar(half_size: float, radius: float, center=(0.0, 0.0, 0.0)) -> Av
     box = torch.tensor([[-half_size] * 3, [half_size] * 3])
     avatar = Avatar(config, box, torch.ones(1, 4, 4, 4), box[0] - 0.2, box[1] + 0.2, pose_dim=3, init_bones=(0,))
     avatar.sdf_field = SphereSDF(center, radius, config.sdf.feature_dim)
+    avatar.surface_level_mode = "zero"  # the sphere itself (the silhouette level is tested on its own)
     return avatar.eval()
 
 
@@ -90,6 +91,20 @@ def test_sphere_canonical_mesh_has_the_radius_and_is_watertight():
     assert is_watertight(vertices, faces)
     # Outward winding: the signed volume is the sphere's (to the discretisation's precision).
     assert trimesh.Trimesh(vertices, faces, process=False).volume == pytest.approx(4 / 3 * np.pi * radius**3, rel=0.02)
+
+
+def test_the_silhouette_level_mesh_is_the_sphere_grown_by_the_silhouette_offset():
+    radius = 0.3
+    avatar = sphere_avatar(0.6, radius)
+    avatar.density.set_ceiling(0.002)  # beta = 2 mm
+    avatar.surface_level_mode = "silhouette"
+    offset = silhouette_offset(0.002)
+    assert avatar.surface_level() == pytest.approx(offset) and 0.0045 < offset < 0.0065  # ~2.7 beta at r = 10 cm
+    vertices, _ = canonical_surface(avatar, resolution=48, coarse_resolution=24)
+    assert np.abs(np.linalg.norm(vertices, axis=1) - (radius + offset)).max() < 5e-4
+    avatar.surface_level_mode = "zero"
+    vertices, _ = canonical_surface(avatar, resolution=48, coarse_resolution=24)
+    assert np.abs(np.linalg.norm(vertices, axis=1) - radius).max() < 5e-4
 
 
 def test_a_surface_reaching_the_canonical_box_is_capped_closed():
@@ -447,7 +462,7 @@ def test_cli_export_json_and_skip_when_unchanged(small_run, tiny_model, cli_runn
 
 
 @pytest.mark.parametrize("case", ["dataset-as-model", "bad-shape", "other-skeleton", "frame-range", "frame-without-pose", "no-pose-file",
-                                  "influences", "texture-size"])
+                                  "influences", "texture-size", "surface-level"])
 def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_runner, tmp_path, case):
     np.savez(tmp_path / "bad.npz", pose_parameters=np.zeros((2, 104, 4, 3)))
     # A bare 3-joint skeleton: no retarget exists onto Anny (SMPL sequences are retargeted).
@@ -462,6 +477,7 @@ def test_bad_inputs_are_one_line_and_write_nothing(small_run, tiny_model, cli_ru
         "no-pose-file": (tiny_model, ["--pose", str(tmp_path / "missing.npz")], 2, "no such file"),
         "influences": (tiny_model, ["--influences", "6"], 2, "--influences 6: expected 4"),
         "texture-size": (tiny_model, ["--texture-size", "8"], 2, "--texture-size 8: expected 0"),
+        "surface-level": (tiny_model, ["--surface-level", "outer"], 2, "--surface-level 'outer': choose one of silhouette, zero"),
     }[case]
     out = tmp_path / "mesh"
     result = cli_runner.invoke(app, ["export", "--model", str(model), "--out", str(out), "--resolution", "16", *extra])

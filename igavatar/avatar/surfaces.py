@@ -7,7 +7,9 @@
     world = posed.pose_vertices(vertices)                             # see igavatar.model.posed
 
 Extraction is igavatar.geometry.extract (coarse grid, then a fine narrow band); `progress`, when
-given, is called as progress(points_done, points_total).
+given, is called as progress(points_done, points_total). Every mesh is the level set
+`avatar.surface_level()` of the SDF (igavatar.model.avatar.SURFACE_LEVEL_BETAS), where the
+renderer's silhouette lies, not its zero level.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ def _closed_sdf(avatar: Avatar) -> Callable[[torch.Tensor], torch.Tensor]:
     center, half = (box[0] + box[1]) / 2, (box[1] - box[0]) / 2
 
     def sdf_fn(x_canonical: torch.Tensor) -> torch.Tensor:
-        sdf = avatar.sdf_field(x_canonical)[0].reshape(-1)
+        sdf = avatar.surface_sdf(x_canonical)
         q = (x_canonical - center).abs() - half
         box_sdf = q.clamp_min(0).norm(dim=-1) + q.amax(dim=-1).clamp_max(0)
         return torch.maximum(sdf, box_sdf)
@@ -79,7 +81,7 @@ def canonical_mesh(
     device = avatar.canonical_box.device
 
     def sdf_fn(x_canonical: torch.Tensor) -> torch.Tensor:
-        return avatar.sdf_field(x_canonical.to(device))[0]
+        return avatar.surface_sdf(x_canonical.to(device))
 
     box = avatar.canonical_box.cpu().numpy()
     return extract_mesh(sdf_fn, box[0], box[1], resolution=resolution, coarse_resolution=coarse_resolution,

@@ -12,6 +12,7 @@ several valid roots of one posed point the one with the highest density wins (of
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -29,6 +30,31 @@ from igavatar.model.fields import (
 )
 from igavatar.model.nonrigid import NonRigidConfig, NonRigidOffset
 from igavatar.render.volume import FieldOutput
+
+#: Radius (meters) of the limb the silhouette offset is computed for: between an arm (4 cm) and
+#: a torso (15 cm); the offset grows only with the logarithm of it.
+SILHOUETTE_RADIUS_M = 0.1
+#: Where meshes are made: "silhouette" (the level set `silhouette_offset(beta)` outside the SDF's
+#: zero level, where the renderer's silhouette lies) or "zero" (the zero level itself).
+SURFACE_LEVELS = ("silhouette", "zero")
+
+
+def silhouette_offset(beta: float, radius: float = SILHOUETTE_RADIUS_M) -> float:
+    """Meters outside the SDF's zero level at which the rendered silhouette of a limb lies.
+
+    The Laplace density's tail reaches outside the zero level: a ray passing a cylinder of radius
+    r at distance d (d << r) crosses an optical depth of `0.5 sqrt(2 pi r / beta) exp(-d / beta)`,
+    which is ln 2 (opacity 1/2) at `d = beta ln(sqrt(2 pi r / beta) / (2 ln 2))`: 2.4 beta for an
+    arm (r = 4 cm at beta = 1 mm), 2.9 beta at r = 10 cm, 3.1 beta for a torso (r = 15 cm).
+    Training fits that silhouette to the masks, so the zero level lies this far inside the
+    subject: the truth's canonical surface lies a median 2.5-4 mm outside it on the limbs and torso
+    of the benchmark subjects at beta = 1 mm (DESIGN.md, Geometry). 0 when beta is not small
+    against r (there is no such tail then).
+    """
+    beta = float(beta)
+    if not beta > 0:
+        return 0.0
+    return beta * max(0.0, math.log(math.sqrt(2.0 * math.pi * radius / beta) / (2.0 * math.log(2.0))))
 
 
 @dataclass(frozen=True)
@@ -94,6 +120,18 @@ class Avatar(nn.Module):
             deformer_config = replace(deformer_config, init_bones=tuple(init_bones), init_parts=parts)
         self.deformer = FastSnarfDeformer(skinning_grid, grid_box_min, grid_box_max, deformer_config)
         self.register_buffer("canonical_box", canonical_box.clone())
+        #: Where meshes are made (SURFACE_LEVELS; not trained, not saved: a stage sets it).
+        self.surface_level_mode = SURFACE_LEVELS[0]
+
+    def surface_level(self) -> float:
+        """Meters outside the SDF's zero level at which meshes are made (see `surface_level_mode`)."""
+        if self.surface_level_mode == "zero":
+            return 0.0
+        return silhouette_offset(float(self.density.beta.detach()))
+
+    def surface_sdf(self, x_canonical: torch.Tensor) -> torch.Tensor:
+        """(M,) signed distance to the meshed surface (the SDF minus `surface_level()`) at (M, 3) canonical points."""
+        return self.sdf_field(x_canonical)[0].reshape(-1) - self.surface_level()
 
     def canonical_density(self, x_canonical: torch.Tensor) -> torch.Tensor:
         """sigma (P,) at canonical points, without non-rigid offsets (for the occupancy grid)."""

@@ -89,9 +89,10 @@ class PosedAvatar:
 
     @torch.no_grad()
     def sdf(self, x_posed: torch.Tensor) -> torch.Tensor:
-        """(M,) canonical SDF at the correspondences of (M, 3) world points; NO_ROOT_SDF without one."""
+        """(M,) signed distance to the meshed surface (Avatar.surface_sdf) at the correspondences of
+        (M, 3) world points; NO_ROOT_SDF without one."""
         x_rigid, found = self.correspond(x_posed)
-        sdf = self.avatar.sdf_field(self.avatar.offset_points(x_rigid, self.pose_condition))[0].reshape(-1)
+        sdf = self.avatar.surface_sdf(self.avatar.offset_points(x_rigid, self.pose_condition))
         return torch.where(found, sdf, torch.full_like(sdf, NO_ROOT_SDF))
 
     @torch.no_grad()
