@@ -46,7 +46,7 @@ from igavatar.artifacts.manifest import InputRecord, build_manifest, validate_ag
 from igavatar.artifacts.targets import check_output_target
 from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
 from igavatar.avatar.model import ModelArtifact, ModelManifest, load_model, read_model_manifest
-from igavatar.avatar.surfaces import canonical_mesh
+from igavatar.avatar.surfaces import canonical_surface
 from igavatar.capture.images import scale_intrinsics
 from igavatar.capture.scans import ScanMatching, default_gt_dir, load_scan, match_scans
 from igavatar.errors import InputError
@@ -261,7 +261,9 @@ def _canonical_geometry(model: ModelArtifact, inputs: _Inputs, options: EvalOpti
                         notes: list[str], progress: ProgressSink) -> _CanonicalGeometry:
     progress.status(f"canonical mesh: marching cubes at {options.mesh_resolution}")
     with clock("canonical_mesh_s"):
-        raw_v, raw_f = canonical_mesh(model.avatar, resolution=options.mesh_resolution)
+        # Closed by the canonical box, as `export` makes it: a surface that reaches the box (a sole,
+        # a finger tip) is capped there, so that the posed meshes have an inside for the IoU.
+        raw_v, raw_f = canonical_surface(model.avatar, resolution=options.mesh_resolution)
         if raw_f.shape[0] == 0:
             raise InputError(f"{inputs.model_dir}: the model's SDF has no surface in its canonical box (empty mesh); "
                              "the model is not trained enough to evaluate its geometry (use --no-geometry)")
