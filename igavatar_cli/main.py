@@ -246,6 +246,7 @@ def train(
         Optional[str], typer.Option(help="Adam on the hash table: sparse (entries no sample reached stay put, as tiny-cuda-nn) or dense (torch's Adam: they drift on their momentum; the ablation).")
     ] = None,
     table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
+    density: Annotated[Optional[str], typer.Option(help="volsdf (the published Laplace density, whose rendered silhouette lies ~3 beta outside the SDF's zero level) or silhouette (shifted so that it lies on the zero level) \\[default: the preset's].")] = None,
     seed: Annotated[int, typer.Option(help="Random seed (runs are deterministic on CPU).")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint of an interrupted run.")] = False,
@@ -261,7 +262,7 @@ def train(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
         samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form,
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
-        sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
+        sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor, density=density,
         seed=seed, device=device, resume=resume,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:

@@ -28,7 +28,8 @@ from igavatar.mesh.gltf import (
     read_rigged_glb,
 )
 from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
-from igavatar.model.avatar import Avatar, silhouette_offset
+from igavatar.model.avatar import Avatar
+from igavatar.model.fields import silhouette_offset
 from igavatar.training.config import preset
 from igavatar_cli.main import app
 from igavatar.avatar.model import load_model

@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from igavatar.model.avatar import SILHOUETTE_RADIUS_M, silhouette_offset
+from igavatar.model.fields import SILHOUETTE_RADIUS_M, silhouette_offset
 from igavatar.model.fields import LaplaceDensity, LaplaceDensityConfig
 
 

@@ -12,7 +12,6 @@ several valid roots of one posed point the one with the highest density wins (of
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -27,34 +26,15 @@ from igavatar.model.fields import (
     LaplaceDensityConfig,
     SDFField,
     SDFFieldConfig,
+    silhouette_offset,
 )
 from igavatar.model.nonrigid import NonRigidConfig, NonRigidOffset
 from igavatar.render.volume import FieldOutput
 
-#: Radius (meters) of the limb the silhouette offset is computed for: between an arm (4 cm) and
-#: a torso (15 cm); the offset grows only with the logarithm of it.
-SILHOUETTE_RADIUS_M = 0.1
-#: Where meshes are made: "silhouette" (the level set `silhouette_offset(beta)` outside the SDF's
-#: zero level, where the renderer's silhouette lies) or "zero" (the zero level itself).
+#: Where meshes are made: "silhouette" (the level set where the renderer's silhouette lies:
+#: `silhouette_offset(beta)` outside the SDF's zero level, or the zero level itself for a density
+#: that is silhouette-aligned) or "zero" (the zero level itself).
 SURFACE_LEVELS = ("silhouette", "zero")
-
-
-def silhouette_offset(beta: float, radius: float = SILHOUETTE_RADIUS_M) -> float:
-    """Meters outside the SDF's zero level at which the rendered silhouette of a limb lies.
-
-    The Laplace density's tail reaches outside the zero level: a ray passing a cylinder of radius
-    r at distance d (d << r) crosses an optical depth of `0.5 sqrt(2 pi r / beta) exp(-d / beta)`,
-    which is ln 2 (opacity 1/2) at `d = beta ln(sqrt(2 pi r / beta) / (2 ln 2))`: 2.4 beta for an
-    arm (r = 4 cm at beta = 1 mm), 2.9 beta at r = 10 cm, 3.1 beta for a torso (r = 15 cm).
-    Training fits that silhouette to the masks, so the zero level lies this far inside the
-    subject: the truth's canonical surface lies a median 2.5-4 mm outside it on the limbs and torso
-    of the benchmark subjects at beta = 1 mm (DESIGN.md, Geometry). 0 when beta is not small
-    against r (there is no such tail then).
-    """
-    beta = float(beta)
-    if not beta > 0:
-        return 0.0
-    return beta * max(0.0, math.log(math.sqrt(2.0 * math.pi * radius / beta) / (2.0 * math.log(2.0))))
 
 
 @dataclass(frozen=True)
@@ -125,8 +105,8 @@ class Avatar(nn.Module):
 
     def surface_level(self) -> float:
         """Meters outside the SDF's zero level at which meshes are made (see `surface_level_mode`)."""
-        if self.surface_level_mode == "zero":
-            return 0.0
+        if self.surface_level_mode == "zero" or self.density.config.silhouette_aligned:
+            return 0.0  # an aligned density renders its silhouette at the zero level already
         return silhouette_offset(float(self.density.beta.detach()))
 
     def surface_sdf(self, x_canonical: torch.Tensor) -> torch.Tensor:

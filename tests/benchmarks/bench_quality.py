@@ -73,6 +73,9 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-sparse-lr1": ["--regularizer", "smooth", "--table-adam", "sparse", "--table-lr-factor", "1"],
     # beta capped at 0.5 mm instead of the cpu preset's 1 mm (the silhouette bias is ~2 beta).
     "smooth-beta0.5mm": ["--regularizer", "smooth", "--beta-final", "0.0005"],
+    # The density shifted so that its rendered silhouette lies on the zero level (and its opposite).
+    "smooth-silhouette": ["--regularizer", "smooth", "--density", "silhouette"],
+    "smooth-volsdf": ["--regularizer", "smooth", "--density", "volsdf"],
     "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
     "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
     # The cpu preset before the geometry work of issue 16 (beta 0.075 -> 3 mm, Eq. 9 at weight 1).
