@@ -76,6 +76,8 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     # The density shifted so that its rendered silhouette lies on the zero level (and its opposite).
     "smooth-silhouette": ["--regularizer", "smooth", "--density", "silhouette"],
     "smooth-volsdf": ["--regularizer", "smooth", "--density", "volsdf"],
+    # beta starting at 5 mm instead of the cpu preset's 2 cm (whose silhouette bias erases thin parts early).
+    "smooth-beta-init5mm": ["--regularizer", "smooth", "--beta-init", "0.005"],
     "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
     "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
     # The cpu preset before the geometry work of issue 16 (beta 0.075 -> 3 mm, Eq. 9 at weight 1).
