@@ -237,7 +237,7 @@ def train(
         Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")
     ] = None,
     beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts \\[default: the preset's].")] = None,
-    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~2 beta outside the surface, so a smaller cap means less inward bias \\[default: the preset's].")] = None,
+    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~3 beta outside the zero level (meshes are made there, see export --surface-level), so a smaller cap means a sharper surface \\[default: the preset's].")] = None,
     free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
@@ -246,7 +246,6 @@ def train(
         Optional[str], typer.Option(help="Adam on the hash table: sparse (entries no sample reached stay put, as tiny-cuda-nn) or dense (torch's Adam: they drift on their momentum; the ablation).")
     ] = None,
     table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
-    density: Annotated[Optional[str], typer.Option(help="volsdf (the published Laplace density, whose rendered silhouette lies ~3 beta outside the SDF's zero level) or silhouette (shifted so that it lies on the zero level) \\[default: the preset's].")] = None,
     seed: Annotated[int, typer.Option(help="Random seed (runs are deterministic on CPU).")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint of an interrupted run.")] = False,
@@ -262,7 +261,7 @@ def train(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
         samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form,
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
-        sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor, density=density,
+        sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:

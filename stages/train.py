@@ -73,15 +73,9 @@ class TrainOptions:
     free_space_weight: float | None = None
     table_adam: str | None = None
     table_lr_factor: float | None = None
-    density: str | None = None
     seed: int = 0
     device: str = "auto"
     resume: bool = False
-
-
-#: --density: volsdf (the published Laplace density: its silhouette lies ~3 beta outside the
-#: zero level) or silhouette (shifted so that the silhouette lies on the zero level).
-DENSITIES = ("volsdf", "silhouette")
 
 
 def resolve_config(options: TrainOptions) -> TrainConfig:
@@ -103,11 +97,6 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 1e-4 <= options.beta_init <= 1.0:
             raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")
         density = dataclasses.replace(config.avatar.density, beta_init=options.beta_init)
-        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, density=density))
-    if options.density is not None:
-        if options.density not in DENSITIES:
-            raise InputError(f"--density {options.density!r}: choose one of {', '.join(DENSITIES)}")
-        density = dataclasses.replace(config.avatar.density, silhouette_aligned=options.density == "silhouette")
         config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, density=density))
     if options.beta_final is not None:
         if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:

@@ -31,9 +31,8 @@ from igavatar.model.fields import (
 from igavatar.model.nonrigid import NonRigidConfig, NonRigidOffset
 from igavatar.render.volume import FieldOutput
 
-#: Where meshes are made: "silhouette" (the level set where the renderer's silhouette lies:
-#: `silhouette_offset(beta)` outside the SDF's zero level, or the zero level itself for a density
-#: that is silhouette-aligned) or "zero" (the zero level itself).
+#: Where meshes are made: "silhouette" (the level set where the renderer's silhouette lies,
+#: `silhouette_offset(beta)` outside the SDF's zero level) or "zero" (the zero level itself).
 SURFACE_LEVELS = ("silhouette", "zero")
 
 
@@ -105,8 +104,8 @@ class Avatar(nn.Module):
 
     def surface_level(self) -> float:
         """Meters outside the SDF's zero level at which meshes are made (see `surface_level_mode`)."""
-        if self.surface_level_mode == "zero" or self.density.config.silhouette_aligned:
-            return 0.0  # an aligned density renders its silhouette at the zero level already
+        if self.surface_level_mode == "zero":
+            return 0.0
         return silhouette_offset(float(self.density.beta.detach()))
 
     def surface_sdf(self, x_canonical: torch.Tensor) -> torch.Tensor:

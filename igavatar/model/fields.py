@@ -308,7 +308,7 @@ class ColorField(nn.Module):
 SILHOUETTE_RADIUS_M = 0.1
 
 
-def silhouette_offset(beta, radius: float = SILHOUETTE_RADIUS_M):
+def silhouette_offset(beta: float, radius: float = SILHOUETTE_RADIUS_M) -> float:
     """Meters outside the SDF's zero level at which the rendered silhouette of a limb lies.
 
     The Laplace density's tail reaches outside the zero level: a ray passing a cylinder of radius
@@ -316,16 +316,9 @@ def silhouette_offset(beta, radius: float = SILHOUETTE_RADIUS_M):
     which is ln 2 (opacity 1/2) at `d = beta ln(sqrt(2 pi r / beta) / (2 ln 2))`: 2.4 beta for an
     arm (r = 4 cm at beta = 1 mm), 2.9 beta at r = 10 cm, 3.1 beta for a torso (r = 15 cm); 0 when
     beta is not small against r (there is no such tail then). Fitting that silhouette to the masks
-    leaves the zero level this far inside the subject (DESIGN.md, Geometry).
-
-    Args:
-        beta: float, or a tensor (then differentiable in it).
-    Returns:
-        the same kind as `beta`.
+    leaves the zero level this far inside the subject (DESIGN.md, Geometry); meshes are made at
+    this level set (igavatar.model.avatar.SURFACE_LEVELS).
     """
-    if isinstance(beta, torch.Tensor):
-        ratio = torch.sqrt(2.0 * math.pi * radius / beta.clamp_min(1e-12)) / (2.0 * math.log(2.0))
-        return beta * torch.log(ratio).clamp_min(0.0)
     beta = float(beta)
     if not beta > 0:
         return 0.0
@@ -341,12 +334,6 @@ class LaplaceDensityConfig:
 
     beta_min: float = 1e-4
     """Lower bound of beta, so the density stays finite."""
-
-    silhouette_aligned: bool = False
-    """Shift the density inwards by `silhouette_offset(beta)`, so that the rendered silhouette lies
-    on the SDF's zero level at every beta: fitting the masks then leaves the zero level on the
-    subject's surface instead of pulling it inside (by ~2 cm at the `cpu` preset's first beta,
-    which erased the finger tips). False: VolSDF's density as published."""
 
     def __post_init__(self) -> None:
         name = "LaplaceDensityConfig"
@@ -385,11 +372,8 @@ class LaplaceDensity(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, sdf: torch.Tensor) -> torch.Tensor:
-        """Density of the same shape as ``sdf``; ``0.5 / beta`` at the surface (at
-        ``-silhouette_offset(beta)`` when silhouette_aligned), monotone decreasing."""
+        """Density of the same shape as ``sdf``; ``0.5 / beta`` at the surface, monotone decreasing."""
         beta = self.beta.to(sdf.dtype)
-        if self.config.silhouette_aligned:
-            sdf = sdf + silhouette_offset(beta)
         # One exp of a non-positive argument: never overflows, and both branches stay finite so
         # torch.where's gradient has no NaN. Outside: 0.5 e^{-d/b}; inside: 1 - 0.5 e^{d/b}.
         decay = torch.exp(-sdf.abs() / beta)

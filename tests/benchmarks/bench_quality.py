@@ -73,9 +73,6 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-sparse-lr1": ["--regularizer", "smooth", "--table-adam", "sparse", "--table-lr-factor", "1"],
     # beta capped at 0.5 mm instead of the cpu preset's 1 mm (the silhouette bias is ~2 beta).
     "smooth-beta0.5mm": ["--regularizer", "smooth", "--beta-final", "0.0005"],
-    # The density shifted so that its rendered silhouette lies on the zero level (and its opposite).
-    "smooth-silhouette": ["--regularizer", "smooth", "--density", "silhouette"],
-    "smooth-volsdf": ["--regularizer", "smooth", "--density", "volsdf"],
     # beta starting at 5 mm instead of the cpu preset's 2 cm (whose silhouette bias erases thin parts early).
     "smooth-beta-init5mm": ["--regularizer", "smooth", "--beta-init", "0.005"],
     "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
