@@ -18,6 +18,8 @@ Dataset layout (schema `dataset`, version 1):
                          skeleton the masks' visual hull in canonical space (capsules around the
                          bones when fewer than MIN_HULL_VIEWS training frames can vote) (manifest
                          data "shape_prior": "template" | "visual_hull" | "capsules")
+    body_template.ply    the body model's naked template in the canonical pose, when the shape prior
+                         is not that template (--shape-prior visual-hull): eval's limb check reads it
     contact_sheet.png    frames with mask and projected skeleton, to check alignment by eye
 """
 
@@ -44,6 +46,7 @@ from igavatar.capture.images import resize_image, resize_mask, resize_plan, scal
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_smpl import smpl_model_for
+from igavatar.avatar.dataset import BODY_TEMPLATE_FILE
 from igavatar.capture.ghost_limbs import PosedBones
 from igavatar.capture.visual_hull import GhostTest, MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import InputError
@@ -66,8 +69,8 @@ MAX_HULL_VIEWS = 64
 #: naked template does not), with the template's skinning weights.
 SHAPE_PRIORS = ("auto", "visual-hull")
 #: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept;
-#: 3: space that skinning lands inside another limb is not kept).
-HULL_PRIOR_VERSION = 3
+#: 3: space that skinning lands inside another limb is not kept; 4: body_template.ply beside it).
+HULL_PRIOR_VERSION = 4
 #: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
 HULL_BOX_SQUEEZE = 3.0
 #: Grid spacing (meters) of the hull prior.
@@ -393,6 +396,9 @@ def _write_arrays(tmp: Path, capture: CaptureV1, subject: PosedSubject, canonica
         canonical_box=prior.canonical_box().numpy().astype(np.float32),
     )
     trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / "template.ply")
+    if prior.kind != "template" and canonical.template_vertices is not None:
+        trimesh.Trimesh(canonical.template_vertices.numpy(), subject.template_faces.numpy(),
+                        process=False).export(tmp / BODY_TEMPLATE_FILE)
 
 
 def _dataset_data(capture: CaptureV1, input_format: str, subject: PosedSubject, canonical: CanonicalSubject,

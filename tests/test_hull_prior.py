@@ -178,3 +178,26 @@ def test_shape_prior_option_is_checked(cli_runner, small_run, tmp_path):
                                      "--shape-prior", "visual-hull"])
     assert result.exit_code == 2 and "4 training frames" in result.output and "at least 8" in result.output
     assert not (tmp_path / "d").exists()
+
+
+def test_a_template_subject_with_a_hull_prior_keeps_its_naked_template_for_the_limb_check(tmp_path):
+    """`--shape-prior visual-hull` on a body-model capture: template.ply is the hull, body_template.ply
+    the naked template, and the canonical report's limb check reads the latter."""
+    from igavatar.avatar.canonical_report import canonical_section
+    from igavatar.avatar.dataset import read_dataset
+
+    run_synth(SynthOptions(out=tmp_path / "capture", resolution=96, train_frames=10, test_frames=0, seed=5))
+    run_preprocess(PreprocessOptions(capture=tmp_path / "capture", out=tmp_path / "dataset", max_size=96,
+                                     shape_prior="visual-hull"))
+    dataset = read_dataset(tmp_path / "dataset")
+    assert dataset.shape_prior == "visual_hull"
+    hull = trimesh.load(tmp_path / "dataset" / "template.ply", process=False)
+    body = trimesh.load(tmp_path / "dataset" / "body_template.ply", process=False)
+    assert body.is_watertight and hull.volume > 1.2 * body.volume  # the hull bounds the naked body loosely
+    section, picture = canonical_section(dataset, tmp_path / "capture", (np.asarray(body.vertices), np.asarray(body.faces)),
+                                         n_iou=20_000)
+    assert section["limb_check"]["passed"] and len(section["limb_check"]["parts"]) == 14
+    shrunk = np.asarray(body.vertices) * 0.8  # a body 20 % too small misses its hands and feet
+    section, _ = canonical_section(dataset, tmp_path / "capture", (shrunk, np.asarray(body.faces)), n_iou=20_000)
+    assert not section["limb_check"]["passed"]
+    assert picture is not None and picture.shape[0] == 3 * 320  # prediction, truth, prior

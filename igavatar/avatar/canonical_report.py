@@ -24,7 +24,7 @@ from igavatar.metrics.canonical import (
     limb_labels,
     rest_to_canonical_transforms,
 )
-from igavatar.avatar.dataset import DatasetArtifact
+from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE, DatasetArtifact
 from igavatar.avatar.subject import SubjectArrays
 from igavatar.metrics.report import canonical_views_image
 from igavatar.skinning.grid import sample_grid
@@ -58,18 +58,24 @@ def canonical_section(
     The limb check needs the template's vertices grouped by body part, so it runs for body models
     with named joints (Anny, SMPL); a bare skeleton gets the comparison with the truth only.
     """
-    template_path = dataset.path / "template.ply"
-    if not template_path.is_file():
+    prior_path, body_path = dataset.path / PRIOR_FILE, dataset.path / BODY_TEMPLATE_FILE
+    if not prior_path.is_file():
         return None, None
-    template = trimesh.load(template_path, process=False)
-    template_v, template_f = np.asarray(template.vertices, np.float64), np.asarray(template.faces, np.int64)
+    prior_mesh = trimesh.load(prior_path, process=False)
+    prior_v, prior_f = np.asarray(prior_mesh.vertices, np.float64), np.asarray(prior_mesh.faces, np.int64)
+    # The naked template the limb check needs: the prior itself, or written beside a prior that is not it.
+    naked = dataset.shape_prior == "template" or body_path.is_file()
+    template_v, template_f = prior_v, prior_f
+    if dataset.shape_prior != "template" and naked:
+        body = trimesh.load(body_path, process=False)
+        template_v, template_f = np.asarray(body.vertices, np.float64), np.asarray(body.faces, np.int64)
     subject = dataset.subject
     truth = canonical_truth(capture_dir, subject)
     kind = dataset.body_model if dataset.body_model in NAMED_SKELETONS else None
     joint_names = list(subject.joint_names)
     labels = np.full(len(template_v), -1, np.int64)
     gap = None
-    if kind is not None and dataset.shape_prior == "template":
+    if kind is not None and naked:
         weights = sample_grid(torch.from_numpy(subject.skinning_grid).float(), torch.from_numpy(subject.grid_box_min).float(),
                               torch.from_numpy(subject.grid_box_max).float(), torch.from_numpy(template_v).float())
         joint_map = dict(semantic_joint_map(kind))
@@ -84,5 +90,5 @@ def canonical_section(
     if truth is not None:
         rows.append(("truth (clothed)", truth[0], truth[1]))
     prior = dataset.shape_prior
-    rows.append(({"template": "template (naked)"}.get(prior, f"shape prior ({prior.replace('_', ' ')})"), template_v, template_f))
+    rows.append(({"template": "template (naked)"}.get(prior, f"shape prior ({prior.replace('_', ' ')})"), prior_v, prior_f))
     return section, canonical_views_image(rows)

@@ -26,6 +26,10 @@ from igavatar.errors import ArtifactError, InputError
 from igavatar.training.data import TrainingData
 
 FRAMES_FILE = "frames.npz"
+#: The shape prior's mesh (the naked template, a visual hull or capsules; manifest "shape_prior").
+PRIOR_FILE = "template.ply"
+#: The naked template beside a prior that is not it (`preprocess --shape-prior visual-hull`).
+BODY_TEMPLATE_FILE = "body_template.ply"
 
 
 @dataclass(frozen=True, eq=False)
