@@ -46,9 +46,9 @@ from igavatar.capture.images import resize_image, resize_mask, resize_plan, scal
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_smpl import smpl_model_for
-from igavatar.avatar.dataset import BODY_TEMPLATE_FILE
-from igavatar.capture.ghost_limbs import PosedBones
-from igavatar.capture.visual_hull import GhostTest, MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
+from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
+from igavatar.capture.ghost_limbs import GhostTest, PosedBones
+from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import InputError
 from igavatar.geometry.projection import project_points
 from igavatar.skinning.bone_weights import BoneWeightConfig, build_bone_skinning_grid
@@ -395,7 +395,7 @@ def _write_arrays(tmp: Path, capture: CaptureV1, subject: PosedSubject, canonica
         grid_box_min=prior.box_min.numpy().astype(np.float32), grid_box_max=prior.box_max.numpy().astype(np.float32),
         canonical_box=prior.canonical_box().numpy().astype(np.float32),
     )
-    trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / "template.ply")
+    trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / PRIOR_FILE)
     if prior.kind != "template" and canonical.template_vertices is not None:
         trimesh.Trimesh(canonical.template_vertices.numpy(), subject.template_faces.numpy(),
                         process=False).export(tmp / BODY_TEMPLATE_FILE)

@@ -46,6 +46,11 @@ def canonical_truth(capture_dir: Path | None, subject: SubjectArrays) -> tuple[n
         return vertices, np.asarray(rest["faces"], np.int64)
 
 
+def _mesh_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    mesh = trimesh.load(path, process=False)
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+
+
 def canonical_section(
     dataset: DatasetArtifact,
     capture_dir: Path | None,
@@ -58,17 +63,14 @@ def canonical_section(
     The limb check needs the template's vertices grouped by body part, so it runs for body models
     with named joints (Anny, SMPL); a bare skeleton gets the comparison with the truth only.
     """
-    prior_path, body_path = dataset.path / PRIOR_FILE, dataset.path / BODY_TEMPLATE_FILE
+    prior_path = dataset.path / PRIOR_FILE
     if not prior_path.is_file():
         return None, None
-    prior_mesh = trimesh.load(prior_path, process=False)
-    prior_v, prior_f = np.asarray(prior_mesh.vertices, np.float64), np.asarray(prior_mesh.faces, np.int64)
+    prior_v, prior_f = _mesh_arrays(prior_path)
     # The naked template the limb check needs: the prior itself, or written beside a prior that is not it.
-    naked = dataset.shape_prior == "template" or body_path.is_file()
-    template_v, template_f = prior_v, prior_f
-    if dataset.shape_prior != "template" and naked:
-        body = trimesh.load(body_path, process=False)
-        template_v, template_f = np.asarray(body.vertices, np.float64), np.asarray(body.faces, np.int64)
+    body_path = prior_path if dataset.shape_prior == "template" else dataset.path / BODY_TEMPLATE_FILE
+    naked = body_path.is_file()
+    template_v, template_f = _mesh_arrays(body_path) if naked and body_path != prior_path else (prior_v, prior_f)
     subject = dataset.subject
     truth = canonical_truth(capture_dir, subject)
     kind = dataset.body_model if dataset.body_model in NAMED_SKELETONS else None

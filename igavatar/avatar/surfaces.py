@@ -8,8 +8,8 @@
 
 Extraction is igavatar.geometry.extract (coarse grid, then a fine narrow band); `progress`, when
 given, is called as progress(points_done, points_total). Every mesh is the level set
-`avatar.surface_level()` of the SDF (igavatar.model.avatar.SURFACE_LEVEL_BETAS), where the
-renderer's silhouette lies, not its zero level.
+`avatar.surface_level()` of the SDF: by default where the renderer's silhouette lies
+(igavatar.model.fields.silhouette_offset), not its zero level.
 """
 
 from __future__ import annotations

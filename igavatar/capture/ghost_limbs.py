@@ -2,6 +2,7 @@
 
     bones = PosedBones.from_skeleton(skeleton, joints_canonical, bone_transforms)
     votes = misplaced_votes(points_canonical, weights, skin, frames, bones)   # (P,) int32 views
+    hull_prior_mesh(..., ghost_test=GhostTest(bones, weights_fn))             # igavatar.capture.visual_hull
     ghost = votes > 0.5 * len(frames)
 
 With the legs spread in canonical space and together in every training frame, the canonical
@@ -78,6 +79,19 @@ class PosedBones:
         rotation, translation = transforms[:, :3, :3], transforms[:, :3, 3]
         move = lambda p: torch.einsum("bij,bj->bi", rotation, p) + translation  # noqa: E731
         return move(self.start), move(self.end)
+
+
+@dataclass(frozen=True)
+class GhostTest:
+    """What the ghost-limb rule of `visual_hull.hull_prior_mesh` needs.
+
+    Attributes:
+        bones: segments and per-frame transforms (indexed by the views' frame numbers).
+        weights: (P, 3) canonical points -> (P, J) the skinning weights that `skin` blends.
+    """
+
+    bones: PosedBones
+    weights: Callable[[torch.Tensor], torch.Tensor]
 
 
 def joint_distances(points: torch.Tensor, start: torch.Tensor, end: torch.Tensor, joint: torch.Tensor,

@@ -16,17 +16,14 @@ filmed from all around), where capsules around the bones would be a sliver or no
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy import ndimage
 
-from igavatar.capture.ghost_limbs import PosedBones, misplaced_votes
-
-#: (frame index, (P, 3) canonical points) -> (P, 3) world points of that frame.
-SkinFn = Callable[[int, torch.Tensor], torch.Tensor]
+from igavatar.capture.ghost_limbs import GhostTest, SkinFn, misplaced_votes
 
 
 @dataclass(frozen=True)
@@ -162,19 +159,6 @@ def free_points(seen: torch.Tensor, inside: torch.Tensor, min_outside_fraction: 
 
 
 @dataclass(frozen=True)
-class GhostTest:
-    """What the ghost-limb rule needs: the skeleton, and the weights `skin` blends.
-
-    Attributes:
-        bones: segments and per-frame transforms (indexed by the views' frame numbers).
-        weights: (P, 3) canonical points -> (P, J) their skinning weights.
-    """
-
-    bones: PosedBones
-    weights: Callable[[torch.Tensor], torch.Tensor]
-
-
-@dataclass(frozen=True)
 class HullPrior:
     """The kept part of the visual hull as a closed mesh in canonical space.
 
@@ -184,7 +168,6 @@ class HullPrior:
         cell_size: meters between the grid's points.
         views: how many views voted.
         touches_box: the kept region reaches the search box's side (the box may cut the subject).
-        ghost_cells: grid points dropped as landing inside another limb (0 when not tested).
     """
 
     vertices: torch.Tensor
@@ -192,7 +175,6 @@ class HullPrior:
     cell_size: float
     views: int
     touches_box: bool
-    ghost_cells: int = 0
 
 
 def hull_prior_mesh(
@@ -219,8 +201,9 @@ def hull_prior_mesh(
     while on the body LBS moves space almost rigidly (ratio ~1). Space that rides rigidly into
     another limb is not folded: with `ghost_test`, a point that skinning lands inside another
     limb in more than `max_ghost_fraction` of the views is dropped too (ghost legs beside spread
-    canonical legs; igavatar.capture.ghost_limbs). Of the kept points the largest connected part is meshed, its inner cavities filled, after a slight blur so that
-    the surface is not staircased at the grid's cells.
+    canonical legs; igavatar.capture.ghost_limbs). Of the kept points the largest connected part
+    is meshed, its inner cavities filled, after a slight blur so that the surface is not
+    staircased at the grid's cells.
 
     Args:
         box: (2, 3) canonical search box (generous: the subject must lie inside).
@@ -239,14 +222,11 @@ def hull_prior_mesh(
     free = free_points(votes.seen, votes.inside, min_outside_fraction, min_outside=2)
     crushed = votes.collapsed > max_collapsed_fraction * len(views.frames)
     kept = ~free & ~crushed & (votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))
-    ghost_cells = 0
     if ghost_test is not None:
         candidates = torch.nonzero(kept).squeeze(1)
         x_canonical = points[candidates]
         misplaced = misplaced_votes(x_canonical, ghost_test.weights(x_canonical), skin, views.frames, ghost_test.bones)
-        ghost = candidates[misplaced > max_ghost_fraction * len(views.frames)]
-        kept[ghost] = False
-        ghost_cells = int(ghost.numel())
+        kept[candidates[misplaced > max_ghost_fraction * len(views.frames)]] = False
     kept = kept.reshape(shape).numpy()
     labels, count = ndimage.label(kept)
     if count == 0:
@@ -263,7 +243,7 @@ def hull_prior_mesh(
     faces = faces.astype(np.int64)
     return HullPrior(
         vertices=torch.from_numpy(np.ascontiguousarray(vertices, np.float32)), faces=torch.from_numpy(faces),
-        cell_size=float(cell_size), views=len(views.frames), touches_box=touches, ghost_cells=ghost_cells,
+        cell_size=float(cell_size), views=len(views.frames), touches_box=touches,
     )
 
 

@@ -226,6 +226,16 @@ def evenly_spaced_vertices(vertices: np.ndarray, faces: np.ndarray, max_edge: fl
     return vertices, faces, np.asarray(mesh.vertex_normals)
 
 
+def _paper_vertices(mesh: trimesh.Trimesh, max_edge: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V', 3) and unit normals of the paper protocol: a mesh with no edge over `max_edge`
+    (or None) keeps its own (a scan's stored normals included); else its midpoint subdivision's."""
+    vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+    if max_edge is None:
+        return vertices, np.asarray(mesh.vertex_normals)
+    even, _, normals = evenly_spaced_vertices(vertices, faces, max_edge)
+    return (vertices, np.asarray(mesh.vertex_normals)) if len(even) == len(vertices) else (even, normals)
+
+
 # ----------------------------------------------------------------------------- surface protocol
 
 
@@ -690,13 +700,9 @@ def evaluate_meshes(
     gt_tm = gt_mesh if isinstance(gt_mesh, trimesh.Trimesh) else trimesh.Trimesh(gt_v, gt_f, process=False)
 
     # Both meshes get the same rule (PAPER_MAX_EDGE_M), so that a prediction equal to its scan
-    # scores a perfect 0 and 1; a mesh with no longer edge keeps the normals it came with.
-    pred_even, pred_normals, gt_even, gt_normals = pred_v, pred_tm.vertex_normals, gt_v, gt_tm.vertex_normals
-    if paper_max_edge is not None:
-        pred_even, _, normals = evenly_spaced_vertices(pred_v, pred_f, paper_max_edge)
-        pred_normals = pred_normals if len(pred_even) == len(pred_v) else normals
-        gt_even, _, normals = evenly_spaced_vertices(gt_v, gt_f, paper_max_edge)
-        gt_normals = gt_normals if len(gt_even) == len(gt_v) else normals
+    # scores a perfect 0 and 1.
+    pred_even, pred_normals = _paper_vertices(pred_tm, paper_max_edge)
+    gt_even, gt_normals = _paper_vertices(gt_tm, paper_max_edge)
     chamfer = chamfer_l2_vertices_cm2(pred_even, gt_even)
     nc_vertices = normal_consistency_vertices(pred_even, pred_normals, gt_even, gt_normals)
     surface = surface_metrics(pred_v, pred_f, gt_v, gt_f, n_points=n_surface, seed=seed)

@@ -71,7 +71,7 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     # unreached entries drift on momentum), and tiny-cuda-nn's sparse rule at that rate.
     "smooth-dense-adam": ["--regularizer", "smooth", "--table-adam", "dense", "--table-lr-factor", "1"],
     "smooth-sparse-lr1": ["--regularizer", "smooth", "--table-adam", "sparse", "--table-lr-factor", "1"],
-    # beta capped at 0.5 mm instead of the cpu preset's 1 mm (the silhouette bias is ~2 beta).
+    # beta capped at 0.5 mm instead of the cpu preset's 1 mm (the silhouette bias is ~3 beta).
     "smooth-beta0.5mm": ["--regularizer", "smooth", "--beta-final", "0.0005"],
     # beta starting at 5 mm instead of the cpu preset's 2 cm (whose silhouette bias erases thin parts early).
     "smooth-beta-init5mm": ["--regularizer", "smooth", "--beta-init", "0.005"],
