@@ -231,7 +231,7 @@ def train(
     ] = None,
     smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works).")] = None,
     smooth_pairs: Annotated[
-        Optional[str], typer.Option(help="L_smooth pairs: valid (consecutive samples on a ray, also across gaps; Eq. 9), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code).")
+        Optional[str], typer.Option(help="L_smooth pairs: monotone (consecutive samples on a ray across which the SDF runs one way: no flip at a ridge of the distance field inside a thin part or in a gap, such as between the legs), valid (every consecutive pair, also across gaps; Eq. 9 read literally), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code) \\[default: monotone].")
     ] = None,
     smooth_form: Annotated[
         Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")

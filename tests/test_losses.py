@@ -206,6 +206,44 @@ def test_adjacent_pairs_skip_gaps_and_match_a_loop_before_and_after_compaction()
         smooth_loss_along_ray(normals, valid, pairs="adjacent")
 
 
+def _analytic_ray(sdf_fn, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Positions (1, S, 3) on the z axis (slightly off it) and the SDF's autograd gradients there."""
+    x = torch.stack([torch.full_like(z, 0.003), torch.full_like(z, -0.002), z], dim=-1).requires_grad_(True)
+    (grad,) = torch.autograd.grad(sdf_fn(x).sum(), x)
+    return x.detach()[None], grad[None]
+
+
+def test_monotone_pairs_drop_the_flip_at_a_distance_ridge_and_keep_surface_noise() -> None:
+    z = torch.linspace(-0.1, 0.1, 41)  # 5 mm apart along one ray
+    valid = torch.ones(1, 41, dtype=torch.bool)
+
+    def finger(x: torch.Tensor) -> torch.Tensor:  # a slab 1.6 cm thick: its medial plane is z = 0
+        return x[..., 2].abs() - 0.008
+
+    def two_fingers(x: torch.Tensor) -> torch.Tensor:  # two slabs with a 4 cm gap: a ridge outside, at z = 0
+        return torch.minimum((x[..., 2] - 0.04).abs(), (x[..., 2] + 0.04).abs()) - 0.008
+
+    for sdf_fn in (finger, two_fingers):
+        positions, gradients = _analytic_ray(sdf_fn, z)
+        every = smooth_loss_along_ray(gradients, valid, normalization="released")
+        monotone = smooth_loss_along_ray(gradients, valid, normalization="released", pairs="monotone", positions=positions)
+        # The distance field's normals flip at the ridge: every pair counts it, monotone pairs do not.
+        assert float(every) > 1e-3
+        assert float(monotone) == pytest.approx(0.0, abs=1e-9)
+
+    def rippled_wall(x: torch.Tensor) -> torch.Tensor:  # a surface at z = 0 with bumps (texture printed into geometry)
+        return x[..., 2] + 0.004 * torch.sin(400.0 * x[..., 2]) * torch.sin(300.0 * x[..., 0] + 5.0)
+
+    positions, gradients = _analytic_ray(rippled_wall, z)
+    every = smooth_loss_along_ray(gradients, valid, normalization="released")
+    monotone = smooth_loss_along_ray(gradients, valid, normalization="released", pairs="monotone", positions=positions)
+    # The SDF runs one way along this ray: every pair is monotone and the noise is penalised as before.
+    assert float(every) > 1e-3
+    assert float(monotone) == pytest.approx(float(every), rel=1e-6)
+    with pytest.raises(ValueError, match="positions"):
+        smooth_loss_along_ray(gradients, valid, pairs="monotone")
+
+
 def test_neighbour_ray_variant_masks_row_and_patch_boundaries() -> None:
     gen = torch.Generator().manual_seed(7)
     p, hp, wp, s = 2, 3, 4, 5

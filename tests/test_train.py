@@ -107,7 +107,7 @@ def test_ablation_regularizers_train(small_run, regularizer):
         assert trainer.avatar.sdf_field.level_weights[-1] < 1, "fine levels should still be closed"
 
 
-@pytest.mark.parametrize("pairs", ["valid", "adjacent", "screen"])
+@pytest.mark.parametrize("pairs", ["valid", "adjacent", "monotone", "screen"])
 def test_smooth_pair_variants_train(small_run, pairs):
     """Each L_smooth pairing runs a step with a finite, positive smooth term; screen pairs use the
     uncompacted layout (one slot per bin on every ray of the patches)."""

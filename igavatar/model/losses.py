@@ -169,9 +169,10 @@ def smooth_loss_along_ray(
     gradients: Tensor,
     valid: Tensor,
     normalization: Literal["samples", "pairs", "released"] = "samples",
-    pairs: Literal["valid", "adjacent"] = "valid",
+    pairs: Literal["valid", "adjacent", "monotone"] = "valid",
     t_starts: Tensor | None = None,
     t_ends: Tensor | None = None,
+    positions: Tensor | None = None,
 ) -> Tensor:
     """Paper Eq. 9: normals at consecutive valid samples of each ray should agree.
 
@@ -201,6 +202,8 @@ def smooth_loss_along_ray(
         normalization: "samples" (Eq. 9, default) or "pairs".
         pairs: "valid" (consecutive valid samples, default) or "adjacent" (touching intervals only).
         t_starts, t_ends: (R, S) sample intervals along the ray; required for ``pairs="adjacent"``.
+        positions: (R, S, 3) sample positions in the gradients' frame; required for
+            ``pairs="monotone"``.
 
     Returns:
         Scalar; 0 when no ray has a pair.
@@ -214,14 +217,18 @@ def smooth_loss_along_ray(
         raise ValueError(
             f"smooth_loss_along_ray: normalization must be 'samples', 'pairs' or 'released', got {normalization!r}"
         )
-    if pairs not in ("valid", "adjacent"):
-        raise ValueError(f"smooth_loss_along_ray: pairs must be 'valid' or 'adjacent', got {pairs!r}")
+    if pairs not in ("valid", "adjacent", "monotone"):
+        raise ValueError(f"smooth_loss_along_ray: pairs must be 'valid', 'adjacent' or 'monotone', got {pairs!r}")
     if pairs == "adjacent" and (
         t_starts is None or t_ends is None or t_starts.shape != valid.shape or t_ends.shape != valid.shape
     ):
         raise ValueError(
             "smooth_loss_along_ray: pairs='adjacent' needs t_starts and t_ends of shape "
             f"{tuple(valid.shape)}"
+        )
+    if pairs == "monotone" and (positions is None or positions.shape != gradients.shape):
+        raise ValueError(
+            f"smooth_loss_along_ray: pairs='monotone' needs positions of shape {tuple(gradients.shape)}"
         )
     r, s, _ = gradients.shape
     valid = valid.bool()
@@ -243,6 +250,13 @@ def smooth_loss_along_ray(
         # whole interval, so a tolerance of a hundredth of the interval separates the two.
         tolerance = 1e-2 * (ends - starts)[:, :-1].abs()
         pair_valid = pair_valid & ((starts[:, 1:] - ends[:, :-1]).abs() <= tolerance)
+    elif pairs == "monotone":
+        g_packed = gradients.detach().new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), gradients.detach())[:, :s]
+        x_packed = positions.detach().new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), positions.detach())[:, :s]
+        chord = x_packed[:, 1:] - x_packed[:, :-1]  # (R, S-1, 3)
+        slope_a = (g_packed[:, :-1] * chord).sum(dim=-1)
+        slope_b = (g_packed[:, 1:] * chord).sum(dim=-1)
+        pair_valid = pair_valid & (slope_a * slope_b > 0)
     if normalization == "released":
         n_a, n_b = n_packed[:, :-1], n_packed[:, 1:]
         n_mid = 0.5 * (n_a + n_b)

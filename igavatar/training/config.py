@@ -23,8 +23,8 @@ from igavatar.model.losses import LossWeights
 
 Regularizer = Literal["smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe"]
 REGULARIZERS: tuple[str, ...] = ("smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe")
-SmoothPairs = Literal["valid", "adjacent", "screen"]
-SMOOTH_PAIRS: tuple[str, ...] = ("valid", "adjacent", "screen")
+SmoothPairs = Literal["valid", "adjacent", "monotone", "screen"]
+SMOOTH_PAIRS: tuple[str, ...] = ("valid", "adjacent", "monotone", "screen")
 SmoothForm = Literal["eq9", "released"]
 SMOOTH_FORMS: tuple[str, ...] = ("eq9", "released")
 TableAdam = Literal["sparse", "dense"]
@@ -76,10 +76,14 @@ class TrainConfig:
     """Weights of the loss terms (paper: rgb 10, alpha 0.1, eikonal 0.1, smooth 1.0)."""
     regularizer: Regularizer = "smooth"
     """Surface regularizer: the paper's along-ray `smooth` or one of the Table-5 ablations."""
-    smooth_pairs: SmoothPairs = "valid"
-    """`smooth`: pair consecutive valid samples (Eq. 9 read literally, also across skipped empty
-    space), only samples of touching intervals ("adjacent"), or the same sample slot on
-    horizontally neighbouring pixels of a patch ("screen", what the released code computes)."""
+    smooth_pairs: SmoothPairs = "monotone"
+    """`smooth`: which consecutive valid samples of a ray L_smooth compares: those across which the
+    SDF runs one way ("monotone", the default: no ridge of the distance field between them, where
+    normals flip by construction; it took most of the web out of the crotch at the same CD and NC,
+    tests/benchmarks/results/smooth-pairs.md), every pair (Eq. 9 read literally, also across
+    skipped empty space: "valid"), only samples of touching intervals ("adjacent"), or the same
+    sample slot on horizontally neighbouring pixels of a patch ("screen", what the released code
+    computes)."""
     smooth_form: SmoothForm = "released"
     """`smooth` along rays: "eq9" (unsquared norms, each ray divided by its valid samples, as Eq. 9
     reads) or "released" (squared differences averaged over every sample slot, as the authors'

@@ -12,7 +12,7 @@ with the same data, steps and seed and evaluates it on both groups of test frame
 
     none, smooth (the paper), fd-eikonal, curvature, hybrid-pe   --regularizer ...
     mlp                                                           --sdf-encoding mlp, same wall clock as smooth
-    smooth-adjacent, smooth-screen, smooth-w0.375 (on request)    how L_smooth pairs samples, its weight
+    smooth-valid, smooth-adjacent, smooth-screen, smooth-w0.375 (on request)    how L_smooth pairs samples, its weight
 
 Each training and evaluation runs as its own `igavatar` process, so peak RAM is that run's.
 The MLP-only SDF gets as many steps as fit in the smooth run's training time (its step time is
@@ -67,6 +67,9 @@ VARIANTS: tuple[str, ...] = ("none", "smooth", "fd-eikonal", "curvature", "hybri
 #: Extra variants (not run by default): how L_smooth pairs samples and how strong it is.
 SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-adjacent": ["--regularizer", "smooth", "--smooth-pairs", "adjacent"],
+    # Every pair of consecutive samples (Eq. 9 read literally; the default before monotone pairs).
+    "smooth-valid": ["--regularizer", "smooth", "--smooth-pairs", "valid"],
+    "smooth-monotone": ["--regularizer", "smooth", "--smooth-pairs", "monotone"],
     # torch's dense Adam on the hash table at the table's old learning rate (the default before:
     # unreached entries drift on momentum), and tiny-cuda-nn's sparse rule at that rate.
     "smooth-dense-adam": ["--regularizer", "smooth", "--table-adam", "dense", "--table-lr-factor", "1"],
@@ -75,11 +78,13 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-beta0.5mm": ["--regularizer", "smooth", "--beta-final", "0.0005"],
     # beta starting at 5 mm instead of the cpu preset's 2 cm (whose silhouette bias erases thin parts early).
     "smooth-beta-init5mm": ["--regularizer", "smooth", "--beta-init", "0.005"],
+    "smooth-beta-init3mm": ["--regularizer", "smooth", "--beta-init", "0.003"],
+    "smooth-monotone-beta-init5mm": ["--regularizer", "smooth", "--smooth-pairs", "monotone", "--beta-init", "0.005"],
     "smooth-screen": ["--regularizer", "smooth", "--smooth-pairs", "screen"],
     "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
     # The cpu preset before the geometry work of issue 16 (beta 0.075 -> 3 mm, Eq. 9 at weight 1).
-    "before": ["--regularizer", "smooth", "--smooth-weight", "1", "--smooth-form", "eq9", "--beta-init", "0.075",
-               "--beta-final", "0.003", "--free-space-weight", "0"],
+    "before": ["--regularizer", "smooth", "--smooth-weight", "1", "--smooth-form", "eq9", "--smooth-pairs", "valid",
+               "--beta-init", "0.075", "--beta-final", "0.003", "--free-space-weight", "0"],
     "smooth-eq9-w0.1": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.1"],
     "smooth-eq9-w0.01": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.01"],
     "smooth-released-w1": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "1"],
