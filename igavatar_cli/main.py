@@ -194,8 +194,9 @@ def preprocess(
         ),
     ] = None,
     shape_prior: Annotated[str, typer.Option(
-        help="auto: the body model's template, or for a bare skeleton the masks' visual hull in canonical space; "
-             "visual-hull: the hull even with a template (it bounds clothes and hair; needs 8+ training frames).")] = "auto",
+        help="auto: the body model's template, or the masks' visual hull in canonical space when there is no template "
+             "or when 1 %+ of the subject's pixels lie 4 cm+ outside the posed template (a dress, a coat, long hair; "
+             "needs 8+ training frames); template: the template always; visual-hull: the hull even over tight clothes.")] = "auto",
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,

@@ -14,12 +14,13 @@ Dataset layout (schema `dataset`, version 1):
                          init_bones (I,) major bones root finding starts from,
                          skinning_grid (J,D,H,W), grid_box_min (3,), grid_box_max (3,),
                          canonical_box (2,3)
-    template.ply         canonical shape prior: the body model's template mesh, or for a bare
-                         skeleton the masks' visual hull in canonical space (capsules around the
-                         bones when fewer than MIN_HULL_VIEWS training frames can vote) (manifest
-                         data "shape_prior": "template" | "visual_hull" | "capsules")
+    template.ply         canonical shape prior: the body model's template mesh, or the masks' visual
+                         hull in canonical space for a bare skeleton or for clothing the template
+                         cannot grow into (capsules around a bare skeleton's bones when fewer than
+                         MIN_HULL_VIEWS training frames can vote) (manifest data "shape_prior":
+                         "template" | "visual_hull" | "capsules"; "loose_clothing" says why)
     body_template.ply    the body model's naked template in the canonical pose, when the shape prior
-                         is not that template (--shape-prior visual-hull): eval's limb check reads it
+                         is not that template: eval's limb check reads it
     contact_sheet.png    frames with mask and projected skeleton, to check alignment by eye
 """
 
@@ -48,6 +49,7 @@ from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicaliz
 from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
 from igavatar.capture.ghost_limbs import GhostTest, PosedBones
+from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_SHARE, loose_share
 from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import InputError
 from igavatar.geometry.projection import project_points
@@ -64,10 +66,13 @@ BOX_MARGIN_M = 0.12
 MIN_HULL_VIEWS = 8
 #: At most this many training frames (evenly spaced) vote on the hull, which bounds time and memory.
 MAX_HULL_VIEWS = 64
-#: --shape-prior: auto = the body model's template, else the masks' visual hull (else capsules);
-#: visual-hull = the hull even when there is a template (it bounds clothes and hair, which the
-#: naked template does not), with the template's skinning weights.
-SHAPE_PRIORS = ("auto", "visual-hull")
+#: --shape-prior: auto = the body model's template, or the masks' visual hull when the masks show
+#: clothing or hair the template cannot grow into (igavatar.capture.loose_clothing) or when there is
+#: no template (else capsules); template = the template always; visual-hull = the hull even over a
+#: tight template (it bounds clothes and hair), with the template's skinning weights.
+SHAPE_PRIORS = ("auto", "template", "visual-hull")
+#: Bump when auto's choice between the template and the hull changes.
+LOOSE_RULE_VERSION = 1
 #: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept;
 #: 3: space that skinning lands inside another limb is not kept; 4: body_template.ply beside it).
 HULL_PRIOR_VERSION = 4
@@ -286,7 +291,15 @@ def _dataset_config(options: PreprocessOptions, capture: CaptureV1, input_format
     if options.shape_prior not in SHAPE_PRIORS:
         raise InputError(f"--shape-prior {options.shape_prior!r}: choose one of {', '.join(SHAPE_PRIORS)}")
     config = options.config() | {"input_format": input_format}
-    if capture.body_model == "skeleton" or options.shape_prior == "visual-hull":
+    if capture.body_model == "skeleton" and options.shape_prior == "template":
+        raise InputError(
+            "--shape-prior template: the capture has a bare skeleton (no body-model template); "
+            "leave --shape-prior at auto (the masks' visual hull) or give SMPL/Anny poses"
+        )
+    if capture.body_model != "skeleton" and options.shape_prior == "auto":
+        # The masks decide between the template and the hull: a change to the rule redoes the dataset.
+        config["loose_clothing"] = {"version": LOOSE_RULE_VERSION, "distance_m": LOOSE_DISTANCE_M, "share": LOOSE_SHARE}
+    if capture.body_model == "skeleton" or options.shape_prior != "template":
         # The prior is computed here, not read: a change to how it is made must redo the dataset.
         config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
     if not capture.has_masks:
@@ -298,11 +311,12 @@ def _hull_views(capture: CaptureV1, canonical: CanonicalSubject, options: Prepro
     """Training frames whose masks vote for the visual hull; [] when the prior is the body model's.
 
     A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
-    its prior is the masks' visual hull, made once the masks are read.
+    its prior is the masks' visual hull, made once the masks are read. With a template and
+    `auto`, the same views' masks decide whether the hull replaces it (`_loose_clothing`).
     """
     train_names = set(capture.splits["train"])
     train_frames = [i for i, name in enumerate(capture.frames) if name in train_names]
-    use_hull = canonical.template_vertices is None or options.shape_prior == "visual-hull"
+    use_hull = canonical.template_vertices is None or options.shape_prior != "template"
     views = spread_views(train_frames, MAX_HULL_VIEWS) if use_hull else []
     if len(views) >= MIN_HULL_VIEWS:
         return views
@@ -312,6 +326,16 @@ def _hull_views(capture: CaptureV1, canonical: CanonicalSubject, options: Prepro
             f"least {MIN_HULL_VIEWS} views to vote; leave --shape-prior at auto (the body model's template)"
         )
     return []
+
+
+def _loose_clothing(subject: PosedSubject, canonical: CanonicalSubject, views: list[int], masks: dict[int, np.ndarray],
+                    K: np.ndarray, w2c: np.ndarray) -> float:
+    """Mean share of the views' subject pixels LOOSE_DISTANCE_M outside the posed template's silhouette."""
+    bodies = []
+    for i in views:
+        body = _segmentation_body(subject, canonical, i)
+        bodies.append((body.vertices, body.faces, canonical.posed_joints[i][0].double().numpy()))
+    return loose_share([masks[i] for i in views], bodies, K[views], w2c[views])
 
 
 def _frame_mask(capture: CaptureV1, i: int, rgb: np.ndarray, mask: np.ndarray, K: np.ndarray, subject: PosedSubject,
@@ -453,6 +477,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     with atomic_directory(out, kind="dataset", inputs=output_inputs) as tmp:
         with clock("frames_s"):
             hull_masks = _write_frames(tmp, capture, subject, canonical, K, size_hw, hull_views, progress)
+        loose = None
+        if hull_views and canonical.template_vertices is not None and options.shape_prior == "auto":
+            loose = _loose_clothing(subject, canonical, hull_views, hull_masks, K, capture.w2c)
+            if loose < LOOSE_SHARE:
+                hull_views = []  # tight clothes: the naked template is the better prior
         with clock("skinning_grid_s"):
             prior = _hull_prior(subject, canonical, hull_views, hull_masks, K, capture.w2c, options.grid_resolution,
                                 options.weight_blur) if hull_views else None
@@ -460,6 +489,8 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                 prior = _body_prior(subject, canonical, options.grid_resolution, options.weight_blur)
         _write_arrays(tmp, capture, subject, canonical, prior, K)
         data = _dataset_data(capture, input_format, subject, canonical, prior, size_hw, scale_xy[0], options)
+        if loose is not None:
+            data["loose_clothing"] = {"share": round(loose, 5), "threshold": LOOSE_SHARE, "distance_m": LOOSE_DISTANCE_M}
         build_manifest("dataset", tmp, stage="preprocess", config=config, inputs=inputs, data=data, seed=None,
                        device="cpu", timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes()})
     return {
