@@ -33,7 +33,7 @@ def template_silhouette(vertices_world: np.ndarray, faces: np.ndarray, K: np.nda
     Args:
         vertices_world: (V, 3) posed vertices; faces: (F, 3); K: (3, 3); w2c: (4, 4).
     """
-    uv, z = project_points(K, w2c, vertices_world)
+    uv, _ = project_points(K, w2c, vertices_world)
     keep = np.all(np.isfinite(uv[faces]).reshape(len(faces), -1), axis=1)
     polygons = np.round(uv[faces[keep]] * 8).astype(np.int32)  # (F', 3, 2), 3 fractional bits
     silhouette = np.zeros(size_hw, np.uint8)

@@ -238,24 +238,28 @@ def smooth_loss_along_ray(
     # adjacent whatever gaps separated them.
     num_valid = valid.sum(dim=1)
     dest = torch.where(valid, torch.cumsum(valid, dim=1) - 1, s)
-    n_packed = n_hat.new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), n_hat)[:, :s]
+
+    def pack(values: Tensor) -> Tensor:
+        """(R, S, ...) per-slot values -> the same values of the valid samples, packed to the front."""
+        index = dest.reshape(r, s, *([1] * (values.ndim - 2))).expand_as(values)
+        return values.new_zeros((r, s + 1, *values.shape[2:])).scatter(1, index, values)[:, :s]
+
+    n_packed = pack(n_hat)
     valid_packed = torch.arange(s, device=valid.device)[None, :] < num_valid[:, None]
     pair_valid = valid_packed[:, :-1] & valid_packed[:, 1:]  # (R, S-1)
     if pairs == "adjacent":
-        def pack(values: Tensor) -> Tensor:
-            return values.new_zeros((r, s + 1)).scatter(1, dest, values)[:, :s]
-
         starts, ends = pack(t_starts.detach()), pack(t_ends.detach())
         # Touching intervals share a boundary up to rounding; a skipped bin leaves a gap of one
         # whole interval, so a tolerance of a hundredth of the interval separates the two.
         tolerance = 1e-2 * (ends - starts)[:, :-1].abs()
         pair_valid = pair_valid & ((starts[:, 1:] - ends[:, :-1]).abs() <= tolerance)
     elif pairs == "monotone":
-        g_packed = gradients.detach().new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), gradients.detach())[:, :s]
-        x_packed = positions.detach().new_zeros((r, s + 1, 3)).scatter(1, dest[..., None].expand(r, s, 3), positions.detach())[:, :s]
-        chord = x_packed[:, 1:] - x_packed[:, :-1]  # (R, S-1, 3)
-        slope_a = (g_packed[:, :-1] * chord).sum(dim=-1)
-        slope_b = (g_packed[:, 1:] * chord).sum(dim=-1)
+        # The SDF's slope along the chord between the two samples, at each end: the unit normals
+        # have the gradients' signs, so the packed normals serve.
+        chord = pack(positions.detach()).diff(dim=1)  # (R, S-1, 3)
+        normals = n_packed.detach()
+        slope_a = (normals[:, :-1] * chord).sum(dim=-1)
+        slope_b = (normals[:, 1:] * chord).sum(dim=-1)
         pair_valid = pair_valid & (slope_a * slope_b > 0)
     if normalization == "released":
         n_a, n_b = n_packed[:, :-1], n_packed[:, 1:]
