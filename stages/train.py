@@ -32,7 +32,7 @@ from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
 from igavatar.artifacts.storage import storage_errors
 from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file, sha256_json
-from igavatar.avatar.dataset import DatasetArtifact, read_dataset, training_data
+from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE, DatasetArtifact, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.errors import IgavatarError, InputError, Terminated
 from igavatar.metrics.image import psnr as image_psnr
@@ -71,6 +71,7 @@ class TrainOptions:
     beta_init: float | None = None
     beta_final: float | None = None
     free_space_weight: float | None = None
+    body_inside_weight: float | None = None
     table_adam: str | None = None
     table_lr_factor: float | None = None
     seed: int = 0
@@ -86,7 +87,8 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form,
         table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
     )
-    weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight))
+    weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight),
+                                               ("body_inside", options.body_inside_weight))
                if value is not None}
     for name, value in weights.items():
         if value < 0:
@@ -114,6 +116,20 @@ def config_to_json(config: TrainConfig) -> dict:
 SHAPE_INIT_VERSION = 2
 
 
+def _body_template(dataset: DatasetArtifact) -> tuple[np.ndarray, np.ndarray] | None:
+    """The body model's naked template (vertices, faces), or None for a capture without one."""
+    if dataset.shape_prior == "template":
+        path = dataset.path / PRIOR_FILE
+    else:
+        path = dataset.path / BODY_TEMPLATE_FILE
+    if not path.is_file():
+        return None
+    import trimesh
+
+    mesh = trimesh.load(path, process=False)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
 def _shape_init_key(config: TrainConfig, template_sha: str | None, canonical_box: np.ndarray) -> str:
     """Everything that decides the shape initialization's result (the cache is reused only on a match)."""
     return sha256_json({"version": SHAPE_INIT_VERSION, "sdf": dataclasses.asdict(config.avatar.sdf),
@@ -135,7 +151,7 @@ def _shape_initialize(
     avatar: Avatar, config: TrainConfig, dataset: DatasetArtifact, cache_paths: list[Path], progress: ProgressSink
 ) -> tuple[dict, float]:
     """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds)."""
-    template = dataset.path / "template.ply"
+    template = dataset.path / PRIOR_FILE
     canonical_box = dataset.subject.canonical_box
     key = _shape_init_key(config, sha256_file(template) if template.is_file() else None, canonical_box)
     for path in cache_paths:
@@ -357,7 +373,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     )
     clock.add("shape_init_s", shape_seconds)
     save_state(work / "shape_init.npz", shape_state)
-    trainer = Trainer(config, data, avatar, device)
+    trainer = Trainer(config, data, avatar, device, body_template=_body_template(dataset))
     if options.resume:
         _resume(trainer, checkpoint, run_key, config_json, dataset_sha, progress)
     log = _TrainingLog.open(work / "training_log.csv", options.resume)

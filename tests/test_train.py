@@ -291,3 +291,28 @@ def test_free_space_term_trains_and_new_options_are_checked(small_run, cli_runne
         result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
                                          "--preset", "tiny", *flags])
         assert result.exit_code != 0 and flags[0] in result.output and "Traceback" not in result.output
+
+
+def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runner, tmp_path):
+    from stages.train import _body_template
+
+    dataset = read_dataset(small_run / "dataset")
+    template = _body_template(dataset)
+    assert template is not None and template[0].shape[1] == 3
+    config = dataclasses.replace(preset("tiny"), steps=3, loss_weights=dataclasses.replace(preset("tiny").loss_weights, body_inside=10.0))
+    trainer = Trainer(config, training_data(dataset), build_avatar(config, dataset.subject, dataset.data["pose_dim"]),
+                      body_template=template)
+    body = trainer.body_inside
+    assert body is not None and 0 < len(body.points) <= body.sampled and (body.template_sdf < 0).all()
+    logs = [trainer.train_step() for _ in range(3)]
+    assert all("body_inside" in log and np.isfinite(log["body_inside"]) and log["body_inside"] >= 0 for log in logs)
+    # Weight 0 (or no template) builds nothing and adds no term.
+    off = Trainer(preset("tiny"), training_data(dataset), build_avatar(preset("tiny"), dataset.subject, dataset.data["pose_dim"]),
+                  body_template=template)
+    assert off.body_inside is None and "body_inside" not in off.train_step()
+    assert preset("cpu").loss_weights.body_inside > 0 and preset("paper").loss_weights.body_inside == 0
+    resolved = resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny", body_inside_weight=2.0))
+    assert resolved.loss_weights.body_inside == 2.0
+    result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
+                                     "--preset", "tiny", "--body-inside-weight", "-1"])
+    assert result.exit_code != 0 and "--body-inside-weight" in result.output and "Traceback" not in result.output

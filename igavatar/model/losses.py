@@ -62,6 +62,9 @@ class LossWeights:
     """Ablation: eikonal on finite-difference gradients (Neuralangelo), replacing ``eikonal``."""
     curvature: float = 5e-4
     """Ablation: Neuralangelo curvature term; scale it by :func:`linear_warmup` during warm-up."""
+    body_inside: float = 0.0
+    """Hinge keeping the SDF at points inside the naked template (confirmed by the masks) no larger
+    than the template's, plus a slack (igavatar.training.body_prior); 0 = off."""
     free_space: float = 0.0
     """Hinge keeping the SDF at canonical points that the masks' visual hull rules out at least
     as large as their distance to the hull (igavatar.training.visual_hull); 0 = off."""

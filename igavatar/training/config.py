@@ -110,6 +110,11 @@ class TrainConfig:
     free_space_points: int = 4096
     """Canonical points drawn uniformly in the box each step for the visual-hull free-space term
     (used when `loss_weights.free_space` > 0)."""
+    body_inside_points: int = 4096
+    """Points inside the naked template drawn each step for the body-inside term (used when
+    `loss_weights.body_inside` > 0 and the dataset has a body-model template)."""
+    body_inside_slack: float = 0.005
+    """Meters the SDF may exceed the template's inside the body before the body-inside term acts."""
     hull_cell_size: float = 0.015
     """Spacing in meters of the canonical grid on which the masks' visual hull is voted."""
     hull_in_occupancy: bool = False
@@ -193,6 +198,9 @@ def preset(name: str) -> TrainConfig:
             patch_centres_in_mask=0.5, nonrigid_start_fraction=0.5, nonrigid_window_fraction=0.25,
             shape_init_steps=300, shape_init_points=8192, validate_every=500, checkpoint_every=250,
             validation_scale=0.5, validation_samples=96, avatar=_cpu_avatar(),
+            # The naked body inside the clothes keeps the fingers and toes that a pixel-wide
+            # silhouette cannot hold (tests/benchmarks/results/body-prior.md).
+            loss_weights=LossWeights(body_inside=10.0),
         )
     if name == "tiny":
         return TrainConfig(

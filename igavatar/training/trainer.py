@@ -18,6 +18,7 @@ import math
 import time
 from collections import OrderedDict
 
+import numpy as np
 import torch
 
 from igavatar.model.avatar import Avatar
@@ -43,7 +44,10 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
-from igavatar.training.visual_hull import CanonicalHull, canonical_visual_hull, free_space_loss
+from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
+from igavatar.training.visual_hull import (
+    CanonicalHull, canonical_visual_hull, free_space_loss, training_skin, voting_views,
+)
 
 #: Prepared frames kept in memory (each is a (12, D, H, W) blended-transform grid).
 PREPARED_CACHE = 512
@@ -63,7 +67,10 @@ class Trainer:
         device: torch device.
     """
 
-    def __init__(self, config: TrainConfig, data: TrainingData, avatar: Avatar, device: torch.device | str = "cpu"):
+    def __init__(
+        self, config: TrainConfig, data: TrainingData, avatar: Avatar, device: torch.device | str = "cpu",
+        body_template: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
         self.config = config
         self.data = data
         self.device = torch.device(device)
@@ -90,6 +97,11 @@ class Trainer:
         self._hull_cells_cache: torch.Tensor | None = None
         if config.loss_weights.free_space > 0 or config.hull_in_occupancy:
             self.hull = canonical_visual_hull(self.avatar.deformer, data, box, cell_size=config.hull_cell_size)
+        self.body_inside: BodyInsidePoints | None = None
+        if config.loss_weights.body_inside > 0 and body_template is not None:
+            self.body_inside = body_inside_points(
+                *body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed
+            )
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
@@ -155,6 +167,13 @@ class Trainer:
             kept = self.hull.free_distance(centers.cpu()) <= 0
             self._hull_cells_cache = kept.reshape(self.canonical_grid.occupied.shape).to(self.device)
         return self._hull_cells_cache
+
+    def _body_inside_term(self) -> torch.Tensor:
+        """The body-inside hinge on `body_inside_points` points drawn from the confirmed set."""
+        body = self.body_inside
+        pick = torch.randint(0, body.points.shape[0], (self.config.body_inside_points,), generator=self.generator)
+        sdf, _ = self.avatar.sdf_field(body.points[pick].to(self.device))
+        return body_inside_loss(sdf, body.template_sdf[pick].to(self.device), self.config.body_inside_slack)
 
     def _free_space_term(self) -> torch.Tensor:
         """The visual hull's free-space hinge on points drawn uniformly in the canonical box."""
@@ -249,6 +268,8 @@ class Trainer:
         terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
             terms["free_space"] = self._free_space_term()
+        if self.body_inside is not None and len(self.body_inside.points) > 0:
+            terms["body_inside"] = self._body_inside_term()
         loss = total_loss(terms, config.loss_weights)
 
         self.optimizer.zero_grad(set_to_none=True)

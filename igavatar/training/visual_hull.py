@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from igavatar.capture.visual_hull import MaskViews, free_points, grid_points, grid_spacing, spread_views, vote_masks
+from igavatar.capture.visual_hull import MaskViews, SkinFn, free_points, grid_points, grid_spacing, spread_views, vote_masks
 from igavatar.model.deformer import FastSnarfDeformer
 from igavatar.training.data import TrainingData
 
@@ -95,20 +95,7 @@ def canonical_visual_hull(
     """
     box = box.detach().float().cpu()
     points, shape = grid_points(box[0], box[1], cell_size)
-    frames = spread_views(data.train_indices.tolist(), max_views)
-    device = deformer.weights_grid.device
-
-    prepared: dict[int, object] = {}  # the current view's frame, reused over its chunks
-
-    def skin(index: int, x_canonical: torch.Tensor) -> torch.Tensor:
-        if index not in prepared:
-            prepared.clear()
-            prepared[index] = deformer.prepare(data.bone_transforms[index].to(device))
-        return deformer.forward_skinning(x_canonical.to(device), prepared[index])
-
-    views = MaskViews(masks=[data.masks[i].numpy() for i in frames], K=data.K[frames].numpy(),
-                      w2c=data.w2c[frames].numpy(), frames=frames)
-    votes = vote_masks(points, skin, views, mask_dilation_px, chunk_size)
+    votes = vote_masks(points, training_skin(deformer, data), voting_views(data, max_views), mask_dilation_px, chunk_size)
     seen, inside = votes.seen, votes.inside
     free = free_points(seen, inside, min_outside_fraction, min_outside).reshape(shape)
     # Distance from each free cell to the nearest kept one: the SDF there is at least this much
@@ -119,6 +106,28 @@ def canonical_visual_hull(
         seen=seen.reshape(shape), inside=inside.reshape(shape), free=free,
         free_distance_grid=torch.from_numpy(distance),
     )
+
+
+def voting_views(data: TrainingData, max_views: int = 64) -> MaskViews:
+    """The training frames that vote on canonical points: at most `max_views`, evenly spaced."""
+    frames = spread_views(data.train_indices.tolist(), max_views)
+    return MaskViews(masks=[data.masks[i].numpy() for i in frames], K=data.K[frames].numpy(),
+                     w2c=data.w2c[frames].numpy(), frames=frames)
+
+
+def training_skin(deformer: FastSnarfDeformer, data: TrainingData) -> SkinFn:
+    """Forward LBS of canonical points into training frame `index`'s world space, through the
+    deformer's skinning grid (no root finding); a frame's preparation is kept for its chunks."""
+    device = deformer.weights_grid.device
+    prepared: dict[int, object] = {}
+
+    def skin(index: int, x_canonical: torch.Tensor) -> torch.Tensor:
+        if index not in prepared:
+            prepared.clear()
+            prepared[index] = deformer.prepare(data.bone_transforms[index].to(device))
+        return deformer.forward_skinning(x_canonical.to(device), prepared[index])
+
+    return skin
 
 
 def free_space_loss(sdf: torch.Tensor, free_distance: torch.Tensor, slack: float = 0.0) -> torch.Tensor:

@@ -84,7 +84,11 @@ SMOOTH_VARIANTS: dict[str, list[str]] = {
     "smooth-w0.375": ["--regularizer", "smooth", "--smooth-weight", "0.375"],
     # The cpu preset before the geometry work of issue 16 (beta 0.075 -> 3 mm, Eq. 9 at weight 1).
     "before": ["--regularizer", "smooth", "--smooth-weight", "1", "--smooth-form", "eq9", "--smooth-pairs", "valid",
-               "--beta-init", "0.075", "--beta-final", "0.003", "--free-space-weight", "0"],
+               "--beta-init", "0.075", "--beta-final", "0.003", "--free-space-weight", "0", "--body-inside-weight", "0"],
+    # Without the body-inside prior (the default before it), and at a tenth of its weight.
+    "smooth-no-body": ["--regularizer", "smooth", "--body-inside-weight", "0"],
+    "none-no-body": ["--regularizer", "none", "--body-inside-weight", "0"],
+    "smooth-body1": ["--regularizer", "smooth", "--body-inside-weight", "1"],
     "smooth-eq9-w0.1": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.1"],
     "smooth-eq9-w0.01": ["--regularizer", "smooth", "--smooth-form", "eq9", "--smooth-weight", "0.01"],
     "smooth-released-w1": ["--regularizer", "smooth", "--smooth-form", "released", "--smooth-weight", "1"],
