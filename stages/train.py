@@ -32,7 +32,7 @@ from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
 from igavatar.artifacts.storage import storage_errors
 from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file, sha256_json
-from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE, DatasetArtifact, read_dataset, training_data
+from igavatar.avatar.dataset import PRIOR_FILE, DatasetArtifact, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.errors import IgavatarError, InputError, Terminated
 from igavatar.metrics.image import psnr as image_psnr
@@ -118,10 +118,7 @@ SHAPE_INIT_VERSION = 2
 
 def _body_template(dataset: DatasetArtifact) -> tuple[np.ndarray, np.ndarray] | None:
     """The body model's naked template (vertices, faces), or None for a capture without one."""
-    if dataset.shape_prior == "template":
-        path = dataset.path / PRIOR_FILE
-    else:
-        path = dataset.path / BODY_TEMPLATE_FILE
+    path = dataset.body_template_path
     if not path.is_file():
         return None
     import trimesh
@@ -373,7 +370,9 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     )
     clock.add("shape_init_s", shape_seconds)
     save_state(work / "shape_init.npz", shape_state)
-    trainer = Trainer(config, data, avatar, device, body_template=_body_template(dataset))
+    # The template is read only when the body-inside term will use it.
+    body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
+    trainer = Trainer(config, data, avatar, device, body_template=body_template)
     if options.resume:
         _resume(trainer, checkpoint, run_key, config_json, dataset_sha, progress)
     log = _TrainingLog.open(work / "training_log.csv", options.resume)

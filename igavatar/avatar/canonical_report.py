@@ -24,7 +24,7 @@ from igavatar.metrics.canonical import (
     limb_labels,
     rest_to_canonical_transforms,
 )
-from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE, DatasetArtifact
+from igavatar.avatar.dataset import PRIOR_FILE, DatasetArtifact
 from igavatar.avatar.subject import SubjectArrays
 from igavatar.metrics.report import canonical_views_image
 from igavatar.skinning.grid import sample_grid
@@ -67,8 +67,8 @@ def canonical_section(
     if not prior_path.is_file():
         return None, None
     prior_v, prior_f = _mesh_arrays(prior_path)
-    # The naked template the limb check needs: the prior itself, or written beside a prior that is not it.
-    body_path = prior_path if dataset.shape_prior == "template" else dataset.path / BODY_TEMPLATE_FILE
+    # The naked template the limb check needs.
+    body_path = dataset.body_template_path
     naked = body_path.is_file()
     template_v, template_f = _mesh_arrays(body_path) if naked and body_path != prior_path else (prior_v, prior_f)
     subject = dataset.subject

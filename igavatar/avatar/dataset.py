@@ -97,6 +97,12 @@ class DatasetArtifact(ManifestFacts):
     def shape_prior(self) -> str:
         return str(self.data.get("shape_prior", "template"))
 
+    @property
+    def body_template_path(self) -> Path:
+        """Where the body model's naked template is: the prior itself, or written beside a prior
+        that is not it (the file is absent for a capture without a body model)."""
+        return self.path / (PRIOR_FILE if self.shape_prior == "template" else BODY_TEMPLATE_FILE)
+
     @cached_property
     def subject(self) -> SubjectArrays:
         return SubjectArrays.read(self.path / SUBJECT_FILE)

@@ -99,9 +99,9 @@ class Trainer:
             self.hull = canonical_visual_hull(self.avatar.deformer, data, box, cell_size=config.hull_cell_size)
         self.body_inside: BodyInsidePoints | None = None
         if config.loss_weights.body_inside > 0 and body_template is not None:
-            self.body_inside = body_inside_points(
-                *body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed
-            )
+            body = body_inside_points(*body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed)
+            # No confirmed point (a template the masks reject everywhere): no term.
+            self.body_inside = body if len(body.points) > 0 else None
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
@@ -268,7 +268,7 @@ class Trainer:
         terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
             terms["free_space"] = self._free_space_term()
-        if self.body_inside is not None and len(self.body_inside.points) > 0:
+        if self.body_inside is not None:
             terms["body_inside"] = self._body_inside_term()
         loss = total_loss(terms, config.loss_weights)
 
