@@ -50,6 +50,8 @@ __all__ = [
     "closest_points_on_mesh",
     "closest_points_on_mesh_reference",
     "contains_points",
+    "SurfaceSamples",
+    "surface_samples",
     "surface_metrics",
     "volumetric_iou",
     "evaluate_meshes",
@@ -446,6 +448,58 @@ def closest_points_on_mesh_reference(
     return best_q, best_d, face_ids[best_face]
 
 
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """The surface protocol's samples of two meshes, each matched to the other mesh's closest face.
+
+    Attributes:
+        pred_points (N, 3), pred_normals (N, 3): area-uniform samples of the prediction and their
+            faces' unit normals; gt_points, gt_normals: the same for the ground truth.
+        pred_to_gt_m (N,), gt_to_pred_m (N,): each sample's distance to the other mesh (meters).
+        pred_to_gt_cos (N,), gt_to_pred_cos (N,): |cos| between a sample's face normal and the normal
+            of the other mesh's face holding its closest point.
+    """
+
+    pred_points: np.ndarray
+    pred_normals: np.ndarray
+    pred_to_gt_m: np.ndarray
+    pred_to_gt_cos: np.ndarray
+    gt_points: np.ndarray
+    gt_normals: np.ndarray
+    gt_to_pred_m: np.ndarray
+    gt_to_pred_cos: np.ndarray
+
+
+def surface_samples(
+    pred_vertices: Any, pred_faces: Any, gt_vertices: Any, gt_faces: Any, n_points: int = 10_000, seed: int = 0
+) -> SurfaceSamples:
+    """Sample both surfaces and match every sample to the other mesh (`surface_metrics`' per-sample data).
+
+    Args:
+        pred_vertices (Vp, 3), pred_faces (Fp, 3), gt_vertices (Vg, 3), gt_faces (Fg, 3): meters.
+        n_points: samples per surface (10,000 in the protocol). seed: fixes both sample sets.
+    """
+    pred_v, pred_f = _mesh_arrays(pred_vertices, pred_faces, "pred")
+    gt_v, gt_f = _mesh_arrays(gt_vertices, gt_faces, "gt")
+    if n_points < 1:
+        raise MeshInputError(f"surface_metrics: n_points={n_points}, expected >= 1")
+    # Independent, reproducible streams per mesh: adding a mesh never shifts the other's samples.
+    pred_x, pred_sample_face = sample_surface_uniform(pred_v, pred_f, n_points, np.random.default_rng([seed, 0]))
+    gt_x, gt_sample_face = sample_surface_uniform(gt_v, gt_f, n_points, np.random.default_rng([seed, 1]))
+    pred_fn, _ = face_normals_unit(pred_v, pred_f)
+    gt_fn, _ = face_normals_unit(gt_v, gt_f)
+
+    _, p2g_d, p2g_face = closest_points_on_mesh(pred_x, gt_v, gt_f)
+    _, g2p_d, g2p_face = closest_points_on_mesh(gt_x, pred_v, pred_f)
+    pred_n, gt_n = pred_fn[pred_sample_face], gt_fn[gt_sample_face]
+    return SurfaceSamples(
+        pred_points=pred_x, pred_normals=pred_n, pred_to_gt_m=p2g_d,
+        pred_to_gt_cos=np.abs(np.einsum("ij,ij->i", pred_n, gt_fn[p2g_face])),
+        gt_points=gt_x, gt_normals=gt_n, gt_to_pred_m=g2p_d,
+        gt_to_pred_cos=np.abs(np.einsum("ij,ij->i", gt_n, pred_fn[g2p_face])),
+    )
+
+
 def surface_metrics(
     pred_vertices: Any, pred_faces: Any, gt_vertices: Any, gt_faces: Any, n_points: int = 10_000, seed: int = 0
 ) -> dict[str, float]:
@@ -460,22 +514,11 @@ def surface_metrics(
         distances are unsquared mean point-to-face distances and ``nc_*`` the mean |cos| between a
         sample's face normal and the normal of the other mesh's face holding its closest point.
     """
-    pred_v, pred_f = _mesh_arrays(pred_vertices, pred_faces, "pred")
-    gt_v, gt_f = _mesh_arrays(gt_vertices, gt_faces, "gt")
-    if n_points < 1:
-        raise MeshInputError(f"surface_metrics: n_points={n_points}, expected >= 1")
-    # Independent, reproducible streams per mesh: adding a mesh never shifts the other's samples.
-    pred_x, pred_sample_face = sample_surface_uniform(pred_v, pred_f, n_points, np.random.default_rng([seed, 0]))
-    gt_x, gt_sample_face = sample_surface_uniform(gt_v, gt_f, n_points, np.random.default_rng([seed, 1]))
-    pred_fn, _ = face_normals_unit(pred_v, pred_f)
-    gt_fn, _ = face_normals_unit(gt_v, gt_f)
-
-    _, p2g_d, p2g_face = closest_points_on_mesh(pred_x, gt_v, gt_f)
-    _, g2p_d, g2p_face = closest_points_on_mesh(gt_x, pred_v, pred_f)
-    nc_p2g = float(np.mean(np.abs(np.einsum("ij,ij->i", pred_fn[pred_sample_face], gt_fn[p2g_face]))))
-    nc_g2p = float(np.mean(np.abs(np.einsum("ij,ij->i", gt_fn[gt_sample_face], pred_fn[g2p_face]))))
-    p2g = float(np.mean(p2g_d)) * M_TO_MM
-    g2p = float(np.mean(g2p_d)) * M_TO_MM
+    samples = surface_samples(pred_vertices, pred_faces, gt_vertices, gt_faces, n_points, seed)
+    nc_p2g = float(np.mean(samples.pred_to_gt_cos))
+    nc_g2p = float(np.mean(samples.gt_to_pred_cos))
+    p2g = float(np.mean(samples.pred_to_gt_m)) * M_TO_MM
+    g2p = float(np.mean(samples.gt_to_pred_m)) * M_TO_MM
     return {
         "chamfer_l1_mm": 0.5 * (p2g + g2p), "pred_to_gt_mm": p2g, "gt_to_pred_mm": g2p,
         "normal_consistency": 0.5 * (nc_p2g + nc_g2p), "nc_pred_to_gt": nc_p2g, "nc_gt_to_pred": nc_g2p,

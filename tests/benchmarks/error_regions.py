@@ -33,7 +33,7 @@ from igavatar.avatar.surfaces import canonical_surface
 from igavatar.capture.scans import load_scan
 from igavatar.mesh.cleanup import clean_mesh
 from igavatar.metrics.canonical import REST_SURFACE_FILE
-from igavatar.metrics.geometry import closest_points_on_mesh, face_normals_unit, sample_surface_uniform
+from igavatar.metrics.geometry import closest_points_on_mesh, sample_surface_uniform, surface_samples
 
 #: A scan face looks down when its unit normal's up component is below this.
 DOWN_COSINE = -0.8
@@ -49,17 +49,11 @@ def region_nc(pred: tuple[np.ndarray, np.ndarray], scan: tuple[np.ndarray, np.nd
         nc (the protocol's mean of both directions), down_share (of the scan's samples), down_nc,
         rest_nc and down_loss_share (the down-facing samples' share of the scan-to-prediction loss).
     """
-    (pv, pf), (gv, gf) = pred, scan
+    gv = np.asarray(scan[0])
     up = int(np.argmax(gv.max(axis=0) - gv.min(axis=0)))
-    px, p_face = sample_surface_uniform(pv, pf, n_points, np.random.default_rng([seed, 0]))
-    gx, g_face = sample_surface_uniform(gv, gf, n_points, np.random.default_rng([seed, 1]))
-    pn, _ = face_normals_unit(pv, pf)
-    gn, _ = face_normals_unit(gv, gf)
-    _, _, p2g_face = closest_points_on_mesh(px, gv, gf)
-    _, _, g2p_face = closest_points_on_mesh(gx, pv, pf)
-    cos_p2g = np.abs(np.einsum("ij,ij->i", pn[p_face], gn[p2g_face]))
-    cos_g2p = np.abs(np.einsum("ij,ij->i", gn[g_face], pn[g2p_face]))
-    down = gn[g_face][:, up] < DOWN_COSINE
+    samples = surface_samples(pred[0], pred[1], scan[0], scan[1], n_points, seed)
+    cos_p2g, cos_g2p = samples.pred_to_gt_cos, samples.gt_to_pred_cos
+    down = samples.gt_normals[:, up] < DOWN_COSINE
     loss = 1.0 - cos_g2p
     return {
         "nc": 0.5 * float(cos_p2g.mean() + cos_g2p.mean()),
