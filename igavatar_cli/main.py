@@ -240,7 +240,7 @@ def train(
     beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts \\[default: the preset's].")] = None,
     beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~3 beta outside the zero level (meshes are made there, see export --surface-level), so a smaller cap means a sharper surface \\[default: the preset's].")] = None,
     free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
-    body_inside_weight: Annotated[Optional[float], typer.Option(help="Weight of the body-inside term: at points inside the body model's naked template that the masks confirm, the SDF may not exceed the template's by more than 5 mm (keeps fingers and toes the images cannot resolve; 0: off; no effect without a template) \\[default: the preset's: cpu 10, paper 0].")] = None,
+    body_inside_weight: Annotated[Optional[float], typer.Option(help="Weight of the body-inside term: at points inside the body model's naked template that the masks confirm, the SDF may not exceed the template's by more than 5 mm (keeps fingers and toes the images cannot resolve; a template that spills past masks of 1.5 cm pixels or finer, a fit too heavy, is not used; 0: off; no effect without a template) \\[default: the preset's: cpu 10, paper 0].")] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
     ] = None,

@@ -321,6 +321,7 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
         "validation_frames": list(validation),
         "validation_psnr": {name: psnr for name, (_, psnr) in validation.items()},
         "validation_scale": config.validation_scale,
+        **({"body_inside": trainer.body_inside_check} if trainer.body_inside_check is not None else {}),
     }
 
 
@@ -373,6 +374,13 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     # The template is read only when the body-inside term will use it.
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
     trainer = Trainer(config, data, avatar, device, body_template=body_template)
+    check = trainer.body_inside_check
+    if check is not None and not check["used"]:
+        progress.status(
+            "body-inside term off: " + ("the masks confirm no point of the body model's template" if not check["kept"] else
+            f"the body model's template spills past the masks (spill {check['spill']:.3f} > {check['max_spill']}: "
+            "the fit looks heavier than the subject; a fitted template stays under 0.02)")
+        )
     if options.resume:
         _resume(trainer, checkpoint, run_key, config_json, dataset_sha, progress)
     log = _TrainingLog.open(work / "training_log.csv", options.resume)

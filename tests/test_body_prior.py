@@ -11,7 +11,7 @@ import numpy as np
 import torch
 import trimesh
 
-from igavatar.training.body_prior import body_inside_loss, body_inside_points, sample_inside_template
+from igavatar.training.body_prior import MAX_SPILL, body_inside_loss, body_inside_points, sample_inside_template
 from igavatar.training.visual_hull import training_skin, voting_views
 from tests.test_visual_hull import CENTERS, RADIUS, scene
 
@@ -50,6 +50,22 @@ def test_masks_drop_a_misplaced_limb_and_keep_the_body():
         assert (body.template_sdf < 0).all()
     assert kept["left"] > 0.97 and kept["right"] > 0.97, kept
     assert kept["ghost"] < 0.02, kept
+
+
+def test_a_template_a_centimetre_too_large_passes_the_vote_but_not_the_spill_check():
+    # 128 px over 1.2 m: a centimetre is a pixel, as at the benchmark's 256 px over its 2.3 m view.
+    # (The spill of a fitted template grows as the pixels coarsen: at 64 px here it is 0.044.)
+    deformer, data = scene(size=128)
+    checks = {}
+    for name, radius in (("fitted", RADIUS), ("1 cm too large", RADIUS + 0.01)):
+        part = sphere_mesh(CENTERS[0].numpy(), radius)
+        body = body_inside_points(part.vertices, part.faces, training_skin(deformer, data), voting_views(data),
+                                  n_points=3000, mask_dilation_px=1)
+        checks[name] = body
+        # The dilated vote keeps (nearly) every point of both: it cannot see the excess.
+        assert len(body.points) / body.sampled > 0.97
+    assert 0 <= checks["fitted"].spill < MAX_SPILL and checks["fitted"].trusted
+    assert checks["1 cm too large"].spill > 2 * MAX_SPILL and not checks["1 cm too large"].trusted
 
 
 def test_hinge_acts_only_outside_the_bound_and_pushes_the_sdf_down():

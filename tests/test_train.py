@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from igavatar.artifacts.manifest import read_artifact
+from igavatar.training import body_prior
 from igavatar.training.checkpoint import flatten, load_state, save_state
 from igavatar.training.config import preset
 from igavatar.training.trainer import Trainer
@@ -293,7 +295,7 @@ def test_free_space_term_trains_and_new_options_are_checked(small_run, cli_runne
         assert result.exit_code != 0 and flags[0] in result.output and "Traceback" not in result.output
 
 
-def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runner, tmp_path):
+def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runner, tmp_path, monkeypatch):
     from stages.train import _body_template
 
     dataset = read_dataset(small_run / "dataset")
@@ -304,6 +306,20 @@ def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runne
                       body_template=template)
     body = trainer.body_inside
     assert body is not None and 0 < len(body.points) <= body.sampled and (body.template_sdf < 0).all()
+    check = trainer.body_inside_check
+    # 64 px masks: a pixel is ~3 cm at the subject, too coarse to tell a centimetre of excess.
+    assert check["used"] and check["kept"] == len(body.points) and 0 <= check["spill"] <= 1
+    assert check["pixel_m"] > body_prior.SPILL_CHECK_MAX_PIXEL_M and not check["spill_checked"]
+    # The same template grown by 5 cm (a fit far too heavy), with the check made at any pixel size:
+    # its spill past the masks turns the term off (the check itself: tests/test_body_prior.py).
+    monkeypatch.setattr(body_prior, "SPILL_CHECK_MAX_PIXEL_M", 1.0)
+    mesh = trimesh.Trimesh(*template, process=False)
+    heavy = (mesh.vertices + 0.05 * mesh.vertex_normals, mesh.faces)
+    refused = Trainer(config, training_data(dataset), build_avatar(config, dataset.subject, dataset.data["pose_dim"]),
+                      body_template=heavy)
+    assert refused.body_inside is None and "body_inside" not in refused.train_step()
+    assert refused.body_inside_check["spill_checked"] and not refused.body_inside_check["used"]
+    assert refused.body_inside_check["spill"] > max(check["max_spill"], check["spill"])
     logs = [trainer.train_step() for _ in range(3)]
     assert all("body_inside" in log and np.isfinite(log["body_inside"]) and log["body_inside"] >= 0 for log in logs)
     # Weight 0 (or no template) builds nothing and adds no term.
@@ -313,6 +329,12 @@ def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runne
     assert preset("cpu").loss_weights.body_inside > 0 and preset("paper").loss_weights.body_inside == 0
     resolved = resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny", body_inside_weight=2.0))
     assert resolved.loss_weights.body_inside == 2.0
+    # The model manifest records the check (validated against schemas/model.schema.json on write).
+    monkeypatch.undo()
+    run_train(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny", steps=2,
+                           body_inside_weight=2.0, device="cpu"))
+    recorded = read_artifact(tmp_path / "m", expected="model")["data"]["body_inside"]
+    assert recorded["used"] and recorded["kept"] == check["kept"] and recorded["spill"] == pytest.approx(check["spill"])
     result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
                                      "--preset", "tiny", "--body-inside-weight", "-1"])
     assert result.exit_code != 0 and "--body-inside-weight" in result.output and "Traceback" not in result.output

@@ -16,6 +16,16 @@ would make the bound wrong. Only points that the masks confirm are kept: pushed 
 training frame by forward skinning, a point must fall inside the (dilated) mask in all but a few
 views (the visual hull's vote, igavatar.capture.visual_hull), so a limb of the template that lies
 outside the subject's silhouettes is left out instead of being forced into the shape.
+
+A fit that is too heavy everywhere by a centimetre or two passes that vote (a centimetre is about a
+pixel at 256 px) and the bound would inflate the subject by the excess less the slack. The
+confirmed points also measure it: their `spill`, the mean share of the views seeing a point in
+which it falls outside the undilated mask, is 0.011-0.015 for the benchmark's fitted templates and
+0.060 / 0.108 for a template grown by 1 / 2 cm (256 px: a pixel is 1.1 cm wide at the subject). Above
+MAX_SPILL the template is not used. A fitted template's own spill grows as pixels coarsen (the
+silhouette's edge pixels), so the check is made only where a pixel covers at most
+SPILL_CHECK_MAX_PIXEL_M at the subject; with coarser masks a centimetre cannot be seen and the
+template is trusted as the masks' vote leaves it (tests/benchmarks/results/body-prior.md).
 """
 
 from __future__ import annotations
@@ -30,7 +40,16 @@ from scipy.spatial import cKDTree
 from igavatar.capture.ghost_limbs import SkinFn
 from igavatar.capture.visual_hull import MaskViews, free_points, vote_masks
 
-__all__ = ["BodyInsidePoints", "body_inside_loss", "body_inside_points", "sample_inside_template"]
+__all__ = [
+    "MAX_SPILL", "SPILL_CHECK_MAX_PIXEL_M", "BodyInsidePoints", "body_inside_loss", "body_inside_points", "sample_inside_template",
+]
+
+#: Largest `BodyInsidePoints.spill` of a template the body-inside term trusts: between the benchmark's
+#: fitted templates (at most 0.015) and a template 1 cm too heavy (0.060); 5 mm too heavy gives 0.034.
+MAX_SPILL = 0.035
+#: The spill is checked only when a mask pixel covers at most this many meters at the subject (the
+#: benchmark: 1.1 cm; the tests: 1.2 cm in a 128 px view of a 1.2 m box, 2.5 cm at 64 px).
+SPILL_CHECK_MAX_PIXEL_M = 0.015
 
 
 @dataclass(frozen=True)
@@ -41,11 +60,29 @@ class BodyInsidePoints:
         points: (P, 3) float32 canonical positions.
         template_sdf: (P,) float32 the template's signed distance there (< 0, meters).
         sampled: how many points were drawn inside the template before the masks' vote.
+        spill: mean over the kept points of the share of the views seeing a point in which it
+            falls outside the undilated mask (0 for a template inside the silhouettes; nan when
+            no point is kept).
+        pixel_m: median over the views of a mask pixel's width at the kept points' centroid
+            (meters; nan when no point is kept).
     """
 
     points: torch.Tensor
     template_sdf: torch.Tensor
     sampled: int
+    spill: float = float("nan")
+    pixel_m: float = float("nan")
+
+    @property
+    def spill_checked(self) -> bool:
+        """Whether the masks are fine enough for the spill to tell a fit too heavy by a centimetre."""
+        return bool(self.pixel_m <= SPILL_CHECK_MAX_PIXEL_M)
+
+    @property
+    def trusted(self) -> bool:
+        """Whether the term should use these points: some are kept and, where the masks can tell,
+        the template does not spill past them."""
+        return len(self.points) > 0 and (not self.spill_checked or self.spill <= MAX_SPILL)
 
 
 def sample_inside_template(
@@ -98,13 +135,33 @@ def body_inside_points(
         mask_dilation_px: masks are dilated first (pose, camera and mask errors of a pixel or two).
     Returns:
         BodyInsidePoints (CPU); a point is kept unless it falls outside the masks in at least
-        max(2, 10 %) of the views that see it (`free_points`, the visual hull's rule).
+        max(2, 10 %) of the views that see it (`free_points`, the visual hull's rule); its spill
+        is measured on the kept points with the masks as they are.
     """
     points, sdf = sample_inside_template(vertices, faces, n_points, depth_m, seed)
     points_t = torch.tensor(points, dtype=torch.float32)
     votes = vote_masks(points_t, skin, views, mask_dilation_px)
     confirmed = ~free_points(votes.seen, votes.inside)
-    return BodyInsidePoints(points_t[confirmed], torch.tensor(sdf, dtype=torch.float32)[confirmed], len(points))
+    kept = points_t[confirmed]
+    spill = pixel_m = float("nan")
+    if len(kept):
+        exact = vote_masks(kept, skin, views, mask_dilation_px=0)
+        outside = (exact.seen - exact.inside).float() / exact.seen.clamp_min(1).float()
+        spill = float(outside.mean())
+        pixel_m = _pixel_size_m(kept.mean(dim=0, keepdim=True), skin, views)
+    return BodyInsidePoints(kept, torch.tensor(sdf, dtype=torch.float32)[confirmed], len(points), spill, pixel_m)
+
+
+def _pixel_size_m(x_canonical: torch.Tensor, skin: SkinFn, views: MaskViews) -> float:
+    """Median over the views of the width (meters) a pixel covers at a canonical point's depth."""
+    widths = []
+    for K, w2c, frame in zip(views.K, views.w2c, views.frames):
+        K, w2c = np.asarray(K, np.float64), np.asarray(w2c, np.float64)
+        x_world = skin(int(frame), x_canonical).double().cpu().numpy()[0]
+        depth = float(w2c[2, :3] @ x_world + w2c[2, 3])
+        if depth > 0:
+            widths.append(depth / K[0, 0])
+    return float(np.median(widths)) if widths else float("nan")
 
 
 def body_inside_loss(sdf: torch.Tensor, template_sdf: torch.Tensor, slack: float) -> torch.Tensor:

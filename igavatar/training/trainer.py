@@ -44,7 +44,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
-from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
+from igavatar.training.body_prior import MAX_SPILL, BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
     CanonicalHull, canonical_visual_hull, free_space_loss, training_skin, voting_views,
 )
@@ -98,10 +98,16 @@ class Trainer:
         if config.loss_weights.free_space > 0 or config.hull_in_occupancy:
             self.hull = canonical_visual_hull(self.avatar.deformer, data, box, cell_size=config.hull_cell_size)
         self.body_inside: BodyInsidePoints | None = None
+        self.body_inside_check: dict | None = None
         if config.loss_weights.body_inside > 0 and body_template is not None:
             body = body_inside_points(*body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed)
-            # No confirmed point (a template the masks reject everywhere): no term.
-            self.body_inside = body if len(body.points) > 0 else None
+            self.body_inside_check = {
+                "sampled": body.sampled, "kept": len(body.points), "spill": body.spill if len(body.points) else None,
+                "max_spill": MAX_SPILL, "pixel_m": body.pixel_m if len(body.points) else None,
+                "spill_checked": body.spill_checked, "used": body.trusted,
+            }
+            # No confirmed point, or a template that spills past fine masks (a fit too heavy): no term.
+            self.body_inside = body if body.trusted else None
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
