@@ -241,6 +241,7 @@ def train(
     beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~3 beta outside the zero level (meshes are made there, see export --surface-level), so a smaller cap means a sharper surface \\[default: the preset's].")] = None,
     free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
     body_inside_weight: Annotated[Optional[float], typer.Option(help="Weight of the body-inside term: at points inside the body model's naked template that the masks confirm, the SDF may not exceed the template's by more than 5 mm (keeps fingers and toes the images cannot resolve; a template that spills past masks of 1.5 cm pixels or finer, a fit too heavy, is not used; 0: off; no effect without a template) \\[default: the preset's: cpu 10, paper 0].")] = None,
+    body_inside_max_spill: Annotated[Optional[float], typer.Option(help="The body-inside term's fit check: the largest share of views (mean over its points) in which the template may fall outside the masks; fitted templates with exact masks give under 0.02, a fit 1 cm too heavy or masks 1 px too tight about 0.06 (1: never refuse) \\[default: 0.035].")] = None,
     sdf_encoding: Annotated[
         Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
     ] = None,
@@ -263,7 +264,7 @@ def train(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
         samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form,
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
-        body_inside_weight=body_inside_weight, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
+        body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:

@@ -72,6 +72,7 @@ class TrainOptions:
     beta_final: float | None = None
     free_space_weight: float | None = None
     body_inside_weight: float | None = None
+    body_inside_max_spill: float | None = None
     table_adam: str | None = None
     table_lr_factor: float | None = None
     seed: int = 0
@@ -95,6 +96,10 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
             raise InputError(f"--{name.replace('_', '-')}-weight {value}: must be >= 0")
     if weights:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
+    if options.body_inside_max_spill is not None:
+        if not options.body_inside_max_spill >= 0:
+            raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: must be >= 0 (a share of views; 1: no check)")
+        config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:
             raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")
@@ -379,7 +384,8 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
         progress.status(
             "body-inside term off: " + ("the masks confirm no point of the body model's template" if not check["kept"] else
             f"the body model's template spills past the masks (spill {check['spill']:.3f} > {check['max_spill']}: "
-            "the fit looks heavier than the subject; a fitted template stays under 0.02)")
+            "the fit looks heavier than the subject, or the masks are tight; a fitted template with exact masks stays "
+            "under 0.02; --body-inside-max-spill 1 uses it anyway)")
         )
     if options.resume:
         _resume(trainer, checkpoint, run_key, config_json, dataset_sha, progress)

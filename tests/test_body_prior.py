@@ -64,8 +64,9 @@ def test_a_template_a_centimetre_too_large_passes_the_vote_but_not_the_spill_che
         checks[name] = body
         # The dilated vote keeps (nearly) every point of both: it cannot see the excess.
         assert len(body.points) / body.sampled > 0.97
-    assert 0 <= checks["fitted"].spill < MAX_SPILL and checks["fitted"].trusted
-    assert checks["1 cm too large"].spill > 2 * MAX_SPILL and not checks["1 cm too large"].trusted
+    assert 0 <= checks["fitted"].spill < MAX_SPILL and checks["fitted"].trusted()
+    assert checks["1 cm too large"].spill > 2 * MAX_SPILL and not checks["1 cm too large"].trusted()
+    assert checks["1 cm too large"].trusted(max_spill=1.0)  # the user's override: never refused
 
 
 def test_hinge_acts_only_outside_the_bound_and_pushes_the_sdf_down():

@@ -320,6 +320,11 @@ def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runne
     assert refused.body_inside is None and "body_inside" not in refused.train_step()
     assert refused.body_inside_check["spill_checked"] and not refused.body_inside_check["used"]
     assert refused.body_inside_check["spill"] > max(check["max_spill"], check["spill"])
+    # --body-inside-max-spill 1: the user trusts the fit (tight masks, say): the term stays.
+    trusting = dataclasses.replace(config, body_inside_max_spill=1.0)
+    kept = Trainer(trusting, training_data(dataset), build_avatar(trusting, dataset.subject, dataset.data["pose_dim"]),
+                   body_template=heavy)
+    assert kept.body_inside is not None and kept.body_inside_check["used"] and "body_inside" in kept.train_step()
     logs = [trainer.train_step() for _ in range(3)]
     assert all("body_inside" in log and np.isfinite(log["body_inside"]) and log["body_inside"] >= 0 for log in logs)
     # Weight 0 (or no template) builds nothing and adds no term.
@@ -338,3 +343,8 @@ def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runne
     result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
                                      "--preset", "tiny", "--body-inside-weight", "-1"])
     assert result.exit_code != 0 and "--body-inside-weight" in result.output and "Traceback" not in result.output
+    result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
+                                     "--preset", "tiny", "--body-inside-max-spill", "-0.5"])
+    assert result.exit_code != 0 and "--body-inside-max-spill" in result.output and "Traceback" not in result.output
+    assert resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny",
+                                       body_inside_max_spill=1.0)).body_inside_max_spill == 1.0

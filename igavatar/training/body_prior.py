@@ -78,11 +78,10 @@ class BodyInsidePoints:
         """Whether the masks are fine enough for the spill to tell a fit too heavy by a centimetre."""
         return bool(self.pixel_m <= SPILL_CHECK_MAX_PIXEL_M)
 
-    @property
-    def trusted(self) -> bool:
+    def trusted(self, max_spill: float = MAX_SPILL) -> bool:
         """Whether the term should use these points: some are kept and, where the masks can tell,
-        the template does not spill past them."""
-        return len(self.points) > 0 and (not self.spill_checked or self.spill <= MAX_SPILL)
+        the template spills past them no more than `max_spill` (>= 1: never refused)."""
+        return len(self.points) > 0 and (not self.spill_checked or self.spill <= max_spill)
 
 
 def sample_inside_template(

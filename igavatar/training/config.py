@@ -20,6 +20,7 @@ from igavatar.model.deformer import DeformerConfig
 from igavatar.model.fields import ColorFieldConfig, LaplaceDensityConfig, SDFFieldConfig
 from igavatar.model.hashgrid import HashGridConfig
 from igavatar.model.losses import LossWeights
+from igavatar.training.body_prior import MAX_SPILL
 
 Regularizer = Literal["smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe"]
 REGULARIZERS: tuple[str, ...] = ("smooth", "none", "fd-eikonal", "curvature", "fd-eikonal+curvature", "hybrid-pe")
@@ -115,6 +116,9 @@ class TrainConfig:
     `loss_weights.body_inside` > 0 and the dataset has a body-model template)."""
     body_inside_slack: float = 0.005
     """Meters the SDF may exceed the template's inside the body before the body-inside term acts."""
+    body_inside_max_spill: float = MAX_SPILL
+    """Largest spill of the template past the masks (igavatar.training.body_prior) for which the
+    body-inside term is used; >= 1 never refuses a template (masks known to be tight, a fit trusted)."""
     hull_cell_size: float = 0.015
     """Spacing in meters of the canonical grid on which the masks' visual hull is voted."""
     hull_in_occupancy: bool = False

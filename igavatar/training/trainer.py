@@ -44,7 +44,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
-from igavatar.training.body_prior import MAX_SPILL, BodyInsidePoints, body_inside_loss, body_inside_points
+from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
     CanonicalHull, canonical_visual_hull, free_space_loss, training_skin, voting_views,
 )
@@ -103,11 +103,11 @@ class Trainer:
             body = body_inside_points(*body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed)
             self.body_inside_check = {
                 "sampled": body.sampled, "kept": len(body.points), "spill": body.spill if len(body.points) else None,
-                "max_spill": MAX_SPILL, "pixel_m": body.pixel_m if len(body.points) else None,
-                "spill_checked": body.spill_checked, "used": body.trusted,
+                "max_spill": config.body_inside_max_spill, "pixel_m": body.pixel_m if len(body.points) else None,
+                "spill_checked": body.spill_checked, "used": body.trusted(config.body_inside_max_spill),
             }
             # No confirmed point, or a template that spills past fine masks (a fit too heavy): no term.
-            self.body_inside = body if body.trusted else None
+            self.body_inside = body if body.trusted(config.body_inside_max_spill) else None
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
