@@ -97,8 +97,8 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
     if weights:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
     if options.body_inside_max_spill is not None:
-        if not options.body_inside_max_spill >= 0:
-            raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: must be >= 0 (a share of views; 1: no check)")
+        if not 0 <= options.body_inside_max_spill <= 1:
+            raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: expected a share of views in [0, 1] (1: no check)")
         config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:

@@ -344,7 +344,7 @@ def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runne
                                      "--preset", "tiny", "--body-inside-weight", "-1"])
     assert result.exit_code != 0 and "--body-inside-weight" in result.output and "Traceback" not in result.output
     result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
-                                     "--preset", "tiny", "--body-inside-max-spill", "-0.5"])
+                                     "--preset", "tiny", "--body-inside-max-spill", "1.5"])
     assert result.exit_code != 0 and "--body-inside-max-spill" in result.output and "Traceback" not in result.output
     assert resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny",
                                        body_inside_max_spill=1.0)).body_inside_max_spill == 1.0

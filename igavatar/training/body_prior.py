@@ -80,7 +80,7 @@ class BodyInsidePoints:
 
     def trusted(self, max_spill: float = MAX_SPILL) -> bool:
         """Whether the term should use these points: some are kept and, where the masks can tell,
-        the template spills past them no more than `max_spill` (>= 1: never refused)."""
+        the template spills past them no more than `max_spill` (1: never refused)."""
         return len(self.points) > 0 and (not self.spill_checked or self.spill <= max_spill)
 
 

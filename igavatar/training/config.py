@@ -118,7 +118,7 @@ class TrainConfig:
     """Meters the SDF may exceed the template's inside the body before the body-inside term acts."""
     body_inside_max_spill: float = MAX_SPILL
     """Largest spill of the template past the masks (igavatar.training.body_prior) for which the
-    body-inside term is used; >= 1 never refuses a template (masks known to be tight, a fit trusted)."""
+    body-inside term is used, in [0, 1]; 1 never refuses a template (masks known to be tight, a fit trusted)."""
     hull_cell_size: float = 0.015
     """Spacing in meters of the canonical grid on which the masks' visual hull is voted."""
     hull_in_occupancy: bool = False

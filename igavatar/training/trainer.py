@@ -101,13 +101,14 @@ class Trainer:
         self.body_inside_check: dict | None = None
         if config.loss_weights.body_inside > 0 and body_template is not None:
             body = body_inside_points(*body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed)
+            # No confirmed point, or a template that spills past fine masks (a fit too heavy): no term.
+            used = body.trusted(config.body_inside_max_spill)
             self.body_inside_check = {
                 "sampled": body.sampled, "kept": len(body.points), "spill": body.spill if len(body.points) else None,
                 "max_spill": config.body_inside_max_spill, "pixel_m": body.pixel_m if len(body.points) else None,
-                "spill_checked": body.spill_checked, "used": body.trusted(config.body_inside_max_spill),
+                "spill_checked": body.spill_checked, "used": used,
             }
-            # No confirmed point, or a template that spills past fine masks (a fit too heavy): no term.
-            self.body_inside = body if body.trusted(config.body_inside_max_spill) else None
+            self.body_inside = body if used else None
         self._patches_per_step = max(1, config.rays_per_step // config.patch_size**2)
         self.seconds = 0.0
         self.samples_seen = 0
