@@ -61,6 +61,11 @@ from stages.resources import peak_ram_bytes
 
 #: Margin (meters) around the template for clothing, hair and loose garments.
 BOX_MARGIN_M = 0.12
+#: The skinning grid's box (and so the SDF's, which stays inside it) keeps at least this much room
+#: beyond the prior on every side. Fast-SNARF's depth squeeze alone left 2.3 cm behind the back of
+#: a heavy template whose feet stand ahead of its belly, and its clothed back, 3.4 cm out, was cut
+#: flat; clothes the template prior keeps lie within LOOSE_DISTANCE_M (4 cm) of it.
+GRID_MARGIN_M = 0.06
 #: A bare skeleton's shape prior is the masks' visual hull when at least this many training frames
 #: vote (fewer views leave a hull too coarse to trust; capsules around the bones are used then).
 MIN_HULL_VIEWS = 8
@@ -115,7 +120,7 @@ class PreprocessOptions:
         """The options that change the dataset (recorded in the manifest, compared to skip)."""
         return {
             "input_format": self.input_format, "max_size": self.max_size,
-            "grid_resolution": list(self.grid_resolution), "box_margin_m": BOX_MARGIN_M,
+            "grid_resolution": list(self.grid_resolution), "box_margin_m": BOX_MARGIN_M, "grid_margin_m": GRID_MARGIN_M,
             # Only when not the default, so that datasets made before the option keep their config.
             **({"shape_prior": self.shape_prior} if self.shape_prior != "auto" else {}),
             # The passes actually used, so that a change of the defaults makes a new dataset.
@@ -243,7 +248,7 @@ def _body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: 
         capsules = capsule_prior(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms)
         vertices, faces, kind = capsules.vertices, capsules.faces, "capsules"
         posed_boxes = capsules.posed_boxes  # joints alone miss the crown, hands and feet
-    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices))
+    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), margin=GRID_MARGIN_M)
     return ShapePrior(vertices, faces, kind, box_min, box_max, _weights_grid(subject, canonical, box_min, box_max, resolution, blur), _padded(posed_boxes))
 
 
@@ -278,7 +283,8 @@ def _hull_prior(
         return None
     vertices = hull.vertices
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
-    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE)
+    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=_squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE,
+                                          margin=GRID_MARGIN_M)
     grid = _weights_grid(subject, canonical, box_min, box_max, resolution, blur)
     skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
     posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]

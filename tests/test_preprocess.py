@@ -66,6 +66,23 @@ def test_bone_transforms_and_grid_weights_reproduce_the_body_model(small_run):
     assert np.all((joints_uv > 0) & (joints_uv < 64)), "skeleton projects outside the image"
 
 
+def test_boxes_keep_room_for_clothes_beyond_the_template(small_run):
+    """The SDF's box and the skinning grid's keep GRID_MARGIN_M beyond the template on every side
+    (Fast-SNARF's depth squeeze alone cut a heavy subject's clothed back), and hold the clothed truth."""
+    import trimesh
+
+    from stages.preprocess import GRID_MARGIN_M
+
+    subject = np.load(small_run / "dataset" / "subject.npz")
+    template = np.asarray(trimesh.load(small_run / "dataset" / "template.ply", process=False).vertices)
+    lo, hi = template.min(axis=0) - GRID_MARGIN_M, template.max(axis=0) + GRID_MARGIN_M
+    for box_min, box_max in ((subject["canonical_box"][0], subject["canonical_box"][1]), (subject["grid_box_min"], subject["grid_box_max"])):
+        assert np.all(box_min <= lo + 1e-6) and np.all(box_max >= hi - 1e-6), (box_min, box_max, lo, hi)
+    with np.load(small_run / "capture" / "ground_truth" / "clothed_rest.npz") as truth:
+        clothed = truth["vertices"]
+    assert np.all(clothed >= subject["canonical_box"][0]) and np.all(clothed <= subject["canonical_box"][1])
+
+
 def test_intrinsics_follow_the_resize(small_run):
     capture = read_capture_v1(small_run / "capture")
     frames = np.load(small_run / "dataset" / "frames.npz")

@@ -66,11 +66,33 @@ def test_canonical_grid_box_cube_and_squeezed_depth():
     torch.testing.assert_close((box_max + box_min) / 2, center)
 
 
+def test_canonical_grid_box_margin_keeps_room_behind_a_deep_body():
+    # A body 0.5 m deep and 1.6 m tall: the depth squeeze alone (half 0.96 / 4 = 0.24) would end
+    # 1 cm inside its bounds; the box reaches them at least, and with a margin keeps 6 cm on every
+    # side, leaving the wide axes alone.
+    vertices = torch.tensor([[-0.3, -0.4, 0.0], [0.5, 0.1, 1.6]])
+    squeezed = canonical_grid_box(vertices, squeeze_axis=1)
+    torch.testing.assert_close(squeezed[0][1], torch.tensor(-0.4))
+    torch.testing.assert_close(squeezed[1][1], torch.tensor(0.1))
+    box_min, box_max = canonical_grid_box(vertices, squeeze_axis=1, margin=0.06)
+    torch.testing.assert_close(box_min[1], torch.tensor(-0.46))
+    torch.testing.assert_close(box_max[1], torch.tensor(0.16))
+    for axis in (0, 2):
+        torch.testing.assert_close(box_min[axis], squeezed[0][axis])
+        torch.testing.assert_close(box_max[axis], squeezed[1][axis])
+    # A thin body keeps Fast-SNARF's box exactly.
+    thin = torch.tensor([[-0.3, -0.1, 0.0], [0.5, 0.1, 1.6]])
+    for got, want in zip(canonical_grid_box(thin, squeeze_axis=1, margin=0.06), canonical_grid_box(thin, squeeze_axis=1)):
+        torch.testing.assert_close(got, want)
+
+
 def test_canonical_grid_box_rejects_bad_input():
     with pytest.raises(InputError, match="vertices_canonical"):
         canonical_grid_box(torch.zeros(4, 2))
     with pytest.raises(InputError, match="squeeze_axis"):
         canonical_grid_box(torch.rand(4, 3), squeeze_axis=3)
+    with pytest.raises(InputError, match="margin"):
+        canonical_grid_box(torch.rand(4, 3), margin=-0.01)
 
 
 def test_grid_point_positions_follow_d_z_h_y_w_x():

@@ -59,19 +59,23 @@ def canonical_grid_box(
     scale: float = 1.2,
     squeeze_axis: int | None = None,
     squeeze: float = 4.0,
+    margin: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Axis-aligned box around a canonical body, as Fast-SNARF/InstantAvatar size their grid.
 
     A cube centerd on the body's bounding-box center with half-size `scale` x the body's largest
     half-extent; the depth axis `squeeze_axis` (igavatar's body frame is +Z up and faces -Y, so
     depth is axis 1 = Y; SMPL's is 2 = Z) has its half-size divided by `squeeze`, which spends the
-    voxels where the body is, a thin slab in depth.
+    voxels where the body is, a thin slab in depth. Every half-size is then at least the body's
+    half-extent plus `margin`: the squeezed slab of a deep body (a heavy belly with the feet ahead
+    of it) otherwise ends a centimetre or two behind its back, and clothes there are cut off.
 
     Args:
         vertices_canonical: (V, 3) canonical template vertices.
         scale: half-size over the largest half-extent (1.2 in Fast-SNARF).
         squeeze_axis: 0, 1 or 2 to squeeze that axis, None for a cube.
         squeeze: factor dividing the squeezed half-size (4 in Fast-SNARF).
+        margin: meters the box keeps beyond the vertices' bounds on every side (>= 0).
     Returns:
         box_min (3,), box_max (3,) float32 on the vertices' device (CPU for numpy input).
     """
@@ -81,8 +85,8 @@ def canonical_grid_box(
         raise InputError("vertices_canonical: shape (0, 3), expected at least one vertex")
     if squeeze_axis is not None and squeeze_axis not in (0, 1, 2):
         raise InputError(f"squeeze_axis: {squeeze_axis!r}, expected None, 0, 1 or 2")
-    if scale <= 0 or squeeze <= 0:
-        raise InputError(f"scale={scale}, squeeze={squeeze}: both must be positive")
+    if scale <= 0 or squeeze <= 0 or margin < 0:
+        raise InputError(f"scale={scale}, squeeze={squeeze}, margin={margin}: scale and squeeze must be positive, margin >= 0")
     vertices = vertices.to(torch.float32)
     lower = vertices.min(dim=0).values
     upper = vertices.max(dim=0).values
@@ -91,6 +95,7 @@ def canonical_grid_box(
     half_sizes = half.expand(3).clone()
     if squeeze_axis is not None:
         half_sizes[squeeze_axis] = half / squeeze
+    half_sizes = torch.maximum(half_sizes, 0.5 * (upper - lower) + margin)
     if not bool((half_sizes > 0).all()):
         raise InputError("vertices_canonical: all vertices coincide; the box would be empty")
     return center - half_sizes, center + half_sizes
