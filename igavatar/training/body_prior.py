@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 
 from igavatar.capture.ghost_limbs import SkinFn
 from igavatar.capture.visual_hull import MaskViews, free_points, vote_masks
+from igavatar.geometry.projection import project_points
 
 __all__ = [
     "MAX_SPILL", "SPILL_CHECK_MAX_PIXEL_M", "BodyInsidePoints", "body_inside_loss", "body_inside_points", "sample_inside_template",
@@ -155,11 +156,10 @@ def _pixel_size_m(x_canonical: torch.Tensor, skin: SkinFn, views: MaskViews) -> 
     """Median over the views of the width (meters) a pixel covers at a canonical point's depth."""
     widths = []
     for K, w2c, frame in zip(views.K, views.w2c, views.frames):
-        K, w2c = np.asarray(K, np.float64), np.asarray(w2c, np.float64)
-        x_world = skin(int(frame), x_canonical).double().cpu().numpy()[0]
-        depth = float(w2c[2, :3] @ x_world + w2c[2, 3])
-        if depth > 0:
-            widths.append(depth / K[0, 0])
+        K = np.asarray(K, np.float64)
+        _, depth = project_points(K, np.asarray(w2c, np.float64), skin(int(frame), x_canonical).double().cpu().numpy())
+        if depth[0] > 0:
+            widths.append(float(depth[0]) / K[0, 0])
     return float(np.median(widths)) if widths else float("nan")
 
 
