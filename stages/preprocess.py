@@ -79,8 +79,9 @@ SHAPE_PRIORS = ("auto", "template", "visual-hull")
 #: Bump when auto's choice between the template and the hull changes.
 LOOSE_RULE_VERSION = 1
 #: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept;
-#: 3: space that skinning lands inside another limb is not kept; 4: body_template.ply beside it).
-HULL_PRIOR_VERSION = 4
+#: 3: space that skinning lands inside another limb is not kept; 4: body_template.ply beside it;
+#: 5: crushed space that kept cells wall in, the inside of a skirt, is kept).
+HULL_PRIOR_VERSION = 5
 #: The hull's skinning-grid box: depth half-size = 1.2 x the largest half-extent / this.
 HULL_BOX_SQUEEZE = 3.0
 #: Grid spacing (meters) of the hull prior.

@@ -1,7 +1,8 @@
 """The visual-hull shape prior of captures with no template, and the static (root-only) subject.
 
 Analytic: the hull mesh of two spheres seen by a turntable is closed, outward, holds both spheres
-and leaves the gap between them; a rigid turn written as one root joint reproduces every frame.
+and leaves the gap between them; crushed space walled in by a "skirt" is kept, a crushed gap
+open to free space is not; a rigid turn written as one root joint reproduces every frame.
 End to end: `synth --skeleton root` -> `preprocess` gives a hull prior that holds the true surface
 and is not much larger than it, and tiny training runs on a skeleton of one joint.
 """
@@ -18,7 +19,7 @@ import trimesh
 from igavatar.artifacts.manifest import read_artifact
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import forward_kinematics
-from igavatar.capture.visual_hull import MaskViews, hull_prior_mesh, search_box
+from igavatar.capture.visual_hull import MaskViews, enclosed_cells, hull_prior_mesh, search_box
 from igavatar.render.cameras import turntable_cameras
 from igavatar.synth.skeleton_capture import root_only_poses
 from igavatar_cli.main import app
@@ -52,6 +53,74 @@ def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
     assert (distance < 0.02).all()
     gap = np.array([[0.0, 0.0, 0.0]])
     assert not mesh.contains(gap)[0]
+
+
+def cylinder_masks(K: torch.Tensor, w2c: torch.Tensor, size: int, radius: float, half_height: float) -> torch.Tensor:
+    """(N, size, size) bool silhouettes of a solid cylinder around the z axis, |z| <= half_height."""
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij")
+    pixels = torch.stack((u, v, torch.ones_like(u)), dim=-1).reshape(-1, 3)
+    masks = []
+    for k, extrinsic in zip(K.double(), w2c.double()):
+        c2w = torch.linalg.inv(extrinsic)
+        d = (pixels @ torch.linalg.inv(k).T) @ c2w[:3, :3].T
+        o = c2w[:3, 3].expand_as(d)
+        # The ray's span inside the infinite cylinder (a quadratic in t), then its z range there.
+        a = d[:, :2].square().sum(-1)
+        b = 2.0 * (o[:, :2] * d[:, :2]).sum(-1)
+        c = o[:, :2].square().sum(-1) - radius**2
+        disc = b.square() - 4.0 * a * c
+        root = disc.clamp_min(0.0).sqrt()
+        t0, t1 = (-b - root) / (2.0 * a), (-b + root) / (2.0 * a)
+        z0, z1 = o[:, 2] + t0 * d[:, 2], o[:, 2] + t1 * d[:, 2]
+        hit = (disc > 0) & (t1 > 0) & (torch.minimum(z0, z1) <= half_height) & (torch.maximum(z0, z1) >= -half_height)
+        masks.append(hit.reshape(size, size))
+    return torch.stack(masks)
+
+
+def test_crushed_space_walled_in_by_a_skirt_is_kept():
+    # A solid cylinder (a skirt and what it hides) whose core skinning crushes to a tenth of its
+    # width in every frame, as the space between spread canonical legs under a skirt is crushed
+    # when the legs close: the core is inside every mask, crushed, and walled in by the skirt.
+    radius, core, half_height = 0.2, 0.12, 0.15
+    box = torch.tensor([[-0.4, -0.4, -0.3], [0.4, 0.4, 0.3]])
+    n_views, size = 24, 64
+    K, w2c = turntable_cameras(box[0], box[1], n_views, size, size, up=UP, front=FRONT, elevation=math.radians(5.0))
+    K = K.expand(n_views, 3, 3) if K.ndim == 2 else K
+    masks = cylinder_masks(K, w2c, size, radius, half_height)
+    views = MaskViews(masks=[m.numpy() for m in masks], K=K.numpy(), w2c=w2c.numpy(), frames=list(range(n_views)))
+
+    def skin(frame: int, x: torch.Tensor) -> torch.Tensor:
+        inner = x[:, :2].norm(dim=1, keepdim=True) < core
+        return torch.where(inner, x * torch.tensor([0.1, 0.1, 1.0]), x)
+
+    hull = hull_prior_mesh(box, skin, views, cell_size=0.02, mask_dilation_px=1)
+    mesh = trimesh.Trimesh(hull.vertices.numpy(), hull.faces.numpy(), process=False)
+    assert mesh.is_watertight
+    axis = np.array([[0.0, 0.0, z] for z in (-0.1, -0.05, 0.0, 0.05, 0.1)])
+    assert mesh.contains(axis).all()  # the crushed core is kept: the skirt walls it in
+    full = math.pi * radius**2 * 2 * half_height
+    assert full * 0.8 < mesh.volume < full * 1.6
+
+
+def test_enclosed_cells_fill_a_walled_in_core_and_leave_an_open_gap():
+    kept = np.zeros((6, 12, 12), bool)
+    candidates = np.zeros_like(kept)
+    # A ring of kept cells around a core of candidates, in every horizontal (first-axis) plane.
+    kept[:, 2:10, 2:10] = True
+    kept[:, 4:8, 4:8] = False
+    candidates[:, 4:8, 4:8] = True
+    added = enclosed_cells(kept, candidates)
+    # All of the core but its top and bottom layers, whose outer neighbours are not kept.
+    assert added[1:-1, 4:8, 4:8].all() and not added[[0, -1]].any() and added.sum() == 4 * 16
+    # Two "legs" with a candidate gap between them that opens to the grid's edge in every plane.
+    legs = np.zeros_like(kept)
+    legs[:, 2:10, 1:4] = True
+    legs[:, 2:10, 8:11] = True
+    gap = np.zeros_like(kept)
+    gap[:, 2:10, 4:8] = True
+    assert not enclosed_cells(legs, gap).any()
+    # Only candidates are added: a walled-in cell that is not one stays out.
+    assert not enclosed_cells(kept, np.zeros_like(kept)).any()
 
 
 def test_search_box_gives_a_lone_root_room_for_a_standing_person():

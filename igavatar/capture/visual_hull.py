@@ -177,6 +177,36 @@ class HullPrior:
     touches_box: bool
 
 
+def enclosed_cells(kept: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """Candidate cells that kept cells enclose within an axis-aligned slice of the grid.
+
+    A cell counts when, in at least one of its three axis-aligned planes, it lies in a hole of the
+    kept cells (every path in that plane from it to the grid's edge crosses a kept cell), and all
+    six of its neighbours are kept or count too. Under a skirt, the space between the legs is
+    walled in on every side in the horizontal plane, while the gap between two bare legs opens to
+    the front and back (where the masks carve free space) in every plane, so it stays out. The
+    neighbour rule peels one cell off where the added region meets other space: the masks are
+    dilated, so the skirt's walls reach a cell below its hem, and the layer they wall in there is
+    outside the garment.
+
+    Args:
+        kept: (D, H, W) bool cells kept so far.
+        candidates: (D, H, W) bool cells that may be added (here: crushed, not free).
+    Returns:
+        (D, H, W) bool, a subset of `candidates` and disjoint from `kept`.
+    """
+    holes = np.zeros_like(kept)
+    for axis in range(3):
+        for k in range(kept.shape[axis]):
+            plane = [slice(None)] * 3
+            plane[axis] = k
+            plane = tuple(plane)
+            holes[plane] |= ndimage.binary_fill_holes(kept[plane]) & ~kept[plane]
+    added = holes & candidates & ~kept
+    six = ndimage.generate_binary_structure(3, 1)
+    return added & ndimage.binary_erosion(kept | added, structure=six, border_value=0)
+
+
 def hull_prior_mesh(
     box: torch.Tensor,
     skin: SkinFn,
@@ -201,7 +231,10 @@ def hull_prior_mesh(
     while on the body LBS moves space almost rigidly (ratio ~1). Space that rides rigidly into
     another limb is not folded: with `ghost_test`, a point that skinning lands inside another
     limb in more than `max_ghost_fraction` of the views is dropped too (ghost legs beside spread
-    canonical legs; igavatar.capture.ghost_limbs). Of the kept points the largest connected part
+    canonical legs; igavatar.capture.ghost_limbs). Crushed space that the kept cells enclose in a
+    plane is kept after all (`enclosed_cells`): under a skirt the same folding crushes the canonical
+    space between the legs, but there it is the inside of the garment, walled in by the skirt, which
+    no view can carve or confirm. Of the kept points the largest connected part
     is meshed, its inner cavities filled, after a slight blur so that the surface is not
     staircased at the grid's cells.
 
@@ -221,13 +254,15 @@ def hull_prior_mesh(
     votes = vote_masks(points, skin, views, mask_dilation_px, grid=(shape, spacing), min_volume_ratio=min_volume_ratio)
     free = free_points(votes.seen, votes.inside, min_outside_fraction, min_outside=2)
     crushed = votes.collapsed > max_collapsed_fraction * len(views.frames)
-    kept = ~free & ~crushed & (votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames))))
+    seen = votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames)))
+    ghost = torch.zeros_like(free)
     if ghost_test is not None:
-        candidates = torch.nonzero(kept).squeeze(1)
+        candidates = torch.nonzero(~free & seen).squeeze(1)  # crushed ones too: they may be re-admitted
         x_canonical = points[candidates]
         misplaced = misplaced_votes(x_canonical, ghost_test.weights(x_canonical), skin, views.frames, ghost_test.bones)
-        kept[candidates[misplaced > max_ghost_fraction * len(views.frames)]] = False
-    kept = kept.reshape(shape).numpy()
+        ghost[candidates[misplaced > max_ghost_fraction * len(views.frames)]] = True
+    kept = (~free & ~crushed & ~ghost & seen).reshape(shape).numpy()
+    kept |= enclosed_cells(kept, (crushed & ~free & ~ghost & seen).reshape(shape).numpy())
     labels, count = ndimage.label(kept)
     if count == 0:
         return None
