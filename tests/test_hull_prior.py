@@ -26,7 +26,7 @@ from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
 from stages.synth import SynthOptions, run_synth
 from stages.train import TrainOptions, run_train
-from test_visual_hull import BOX, CENTERS, FRONT, RADIUS, UP, sphere_masks
+from test_visual_hull import BOX, CENTERS, FRONT, RADIUS, UP, pixel_rays, sphere_masks
 
 
 def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
@@ -57,13 +57,9 @@ def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
 
 def cylinder_masks(K: torch.Tensor, w2c: torch.Tensor, size: int, radius: float, half_height: float) -> torch.Tensor:
     """(N, size, size) bool silhouettes of a solid cylinder around the z axis, |z| <= half_height."""
-    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij")
-    pixels = torch.stack((u, v, torch.ones_like(u)), dim=-1).reshape(-1, 3)
     masks = []
-    for k, extrinsic in zip(K.double(), w2c.double()):
-        c2w = torch.linalg.inv(extrinsic)
-        d = (pixels @ torch.linalg.inv(k).T) @ c2w[:3, :3].T
-        o = c2w[:3, 3].expand_as(d)
+    for origin, d in pixel_rays(K, w2c, size):
+        o = origin.expand_as(d)
         # The ray's span inside the infinite cylinder (a quadratic in t), then its z range there.
         a = d[:, :2].square().sum(-1)
         b = 2.0 * (o[:, :2] * d[:, :2]).sum(-1)

@@ -38,17 +38,21 @@ def webbed_sdf(x: torch.Tensor) -> torch.Tensor:
     return torch.minimum(true_sdf(x), slab)
 
 
-def sphere_masks(K: torch.Tensor, w2c: torch.Tensor, size: int) -> torch.Tensor:
-    """(N, size, size) bool silhouettes of the two spheres, by ray-sphere intersection."""
+def pixel_rays(K: torch.Tensor, w2c: torch.Tensor, size: int):
+    """Per camera: (origin (3,), unit directions (size * size, 3)) of its pixels, row-major, float64."""
     v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij")
     pixels = torch.stack((u, v, torch.ones_like(u)), dim=-1).reshape(-1, 3)
-    masks = []
     for k, extrinsic in zip(K.double(), w2c.double()):
         c2w = torch.linalg.inv(extrinsic)
         directions = (pixels @ torch.linalg.inv(k).T) @ c2w[:3, :3].T
-        directions = directions / directions.norm(dim=-1, keepdim=True)
-        origin = c2w[:3, 3]
-        hit = torch.zeros(pixels.shape[0], dtype=torch.bool)
+        yield c2w[:3, 3], directions / directions.norm(dim=-1, keepdim=True)
+
+
+def sphere_masks(K: torch.Tensor, w2c: torch.Tensor, size: int) -> torch.Tensor:
+    """(N, size, size) bool silhouettes of the two spheres, by ray-sphere intersection."""
+    masks = []
+    for origin, directions in pixel_rays(K, w2c, size):
+        hit = torch.zeros(directions.shape[0], dtype=torch.bool)
         for center in CENTERS.double():
             to_center = center - origin
             along = directions @ to_center
