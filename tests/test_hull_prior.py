@@ -26,7 +26,7 @@ from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
 from stages.synth import SynthOptions, run_synth
 from stages.train import TrainOptions, run_train
-from test_visual_hull import BOX, CENTERS, FRONT, RADIUS, UP, pixel_rays, sphere_masks
+from test_visual_hull import BOX, CENTERS, FRONT, RADIUS, UP, camera_rays, sphere_masks
 
 
 def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
@@ -58,7 +58,7 @@ def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
 def cylinder_masks(K: torch.Tensor, w2c: torch.Tensor, size: int, radius: float, half_height: float) -> torch.Tensor:
     """(N, size, size) bool silhouettes of a solid cylinder around the z axis, |z| <= half_height."""
     masks = []
-    for origin, d in pixel_rays(K, w2c, size):
+    for origin, d in camera_rays(K, w2c, size):
         o = origin.expand_as(d)
         # The ray's span inside the infinite cylinder (a quadratic in t), then its z range there.
         a = d[:, :2].square().sum(-1)

@@ -17,6 +17,7 @@ from igavatar.model.deformer import FastSnarfDeformer
 from igavatar.model.fields import SDFField, SDFFieldConfig
 from igavatar.model.hashgrid import HashGridConfig
 from igavatar.render.cameras import turntable_cameras
+from igavatar.render.rays import pixel_rays
 from igavatar.training.data import TrainingData
 from igavatar.training.optim import adam
 from igavatar.training.visual_hull import canonical_visual_hull, free_space_loss
@@ -38,20 +39,19 @@ def webbed_sdf(x: torch.Tensor) -> torch.Tensor:
     return torch.minimum(true_sdf(x), slab)
 
 
-def pixel_rays(K: torch.Tensor, w2c: torch.Tensor, size: int):
-    """Per camera: (origin (3,), unit directions (size * size, 3)) of its pixels, row-major, float64."""
+def camera_rays(K: torch.Tensor, w2c: torch.Tensor, size: int):
+    """Per camera: (origin (3,), unit directions (size * size, 3)) through its pixels, row-major, float64."""
     v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij")
-    pixels = torch.stack((u, v, torch.ones_like(u)), dim=-1).reshape(-1, 3)
+    pixels_xy = torch.stack((u, v), dim=-1).reshape(-1, 2)
     for k, extrinsic in zip(K.double(), w2c.double()):
-        c2w = torch.linalg.inv(extrinsic)
-        directions = (pixels @ torch.linalg.inv(k).T) @ c2w[:3, :3].T
-        yield c2w[:3, 3], directions / directions.norm(dim=-1, keepdim=True)
+        origins, directions = pixel_rays(k, extrinsic, pixels_xy)
+        yield origins[0], directions
 
 
 def sphere_masks(K: torch.Tensor, w2c: torch.Tensor, size: int) -> torch.Tensor:
     """(N, size, size) bool silhouettes of the two spheres, by ray-sphere intersection."""
     masks = []
-    for origin, directions in pixel_rays(K, w2c, size):
+    for origin, directions in camera_rays(K, w2c, size):
         hit = torch.zeros(directions.shape[0], dtype=torch.bool)
         for center in CENTERS.double():
             to_center = center - origin

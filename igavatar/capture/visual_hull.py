@@ -207,6 +207,67 @@ def enclosed_cells(kept: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     return added & ndimage.binary_erosion(kept | added, structure=six, border_value=0)
 
 
+@dataclass(frozen=True)
+class HullCells:
+    """The hull's rules on a canonical grid, each as a (P,) bool over the grid's points.
+
+    Attributes:
+        points: (P, 3) grid points (`grid_points`); shape: its (D, H, W); spacing: its cell sizes.
+        free: seen as background by a robust number of views.
+        crushed: skinning squeezes the space around it in too many views.
+        ghost: skinning lands it inside another limb in too many views (all False without a test).
+        seen: enough views see it.
+        walled_in: crushed cells that `enclosed_cells` gives back (the inside of a skirt).
+    """
+
+    points: torch.Tensor
+    shape: tuple[int, int, int]
+    spacing: list[float]
+    free: torch.Tensor
+    crushed: torch.Tensor
+    ghost: torch.Tensor
+    seen: torch.Tensor
+    walled_in: torch.Tensor
+
+    @property
+    def kept(self) -> torch.Tensor:
+        """(P,) bool: the cells the rules keep."""
+        return (~self.free & ~self.crushed & ~self.ghost & self.seen) | self.walled_in
+
+
+def hull_cells(
+    box: torch.Tensor,
+    skin: SkinFn,
+    views: MaskViews,
+    cell_size: float = 0.02,
+    mask_dilation_px: int = 2,
+    min_outside_fraction: float = 0.1,
+    min_seen_fraction: float = 0.5,
+    min_volume_ratio: float = 0.3,
+    max_collapsed_fraction: float = 0.5,
+    ghost_test: GhostTest | None = None,
+    max_ghost_fraction: float = 0.5,
+) -> HullCells:
+    """Apply the hull's rules (see `hull_prior_mesh`) to a grid over a canonical box."""
+    box = torch.as_tensor(box).detach().float().cpu()
+    points, shape = grid_points(box[0], box[1], cell_size)
+    spacing = grid_spacing(box[0], box[1], shape)
+    votes = vote_masks(points, skin, views, mask_dilation_px, grid=(shape, spacing), min_volume_ratio=min_volume_ratio)
+    free = free_points(votes.seen, votes.inside, min_outside_fraction, min_outside=2)
+    crushed = votes.collapsed > max_collapsed_fraction * len(views.frames)
+    seen = votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames)))
+    ghost = torch.zeros_like(free)
+    if ghost_test is not None:
+        candidates = torch.nonzero(~free & seen).squeeze(1)  # crushed ones too: they may be walled in
+        x_canonical = points[candidates]
+        misplaced = misplaced_votes(x_canonical, ghost_test.weights(x_canonical), skin, views.frames, ghost_test.bones)
+        ghost[candidates[misplaced > max_ghost_fraction * len(views.frames)]] = True
+    kept = (~free & ~crushed & ~ghost & seen).reshape(shape).numpy()
+    walled_in = enclosed_cells(kept, (crushed & ~free & ~ghost & seen).reshape(shape).numpy())
+    return HullCells(points=points, shape=shape, spacing=spacing, free=free, crushed=crushed, ghost=ghost, seen=seen,
+                     walled_in=torch.from_numpy(walled_in.reshape(-1)))
+
+
 def hull_prior_mesh(
     box: torch.Tensor,
     skin: SkinFn,
@@ -249,20 +310,10 @@ def hull_prior_mesh(
     from skimage.measure import marching_cubes
 
     box = torch.as_tensor(box).detach().float().cpu()
-    points, shape = grid_points(box[0], box[1], cell_size)
-    spacing = grid_spacing(box[0], box[1], shape)
-    votes = vote_masks(points, skin, views, mask_dilation_px, grid=(shape, spacing), min_volume_ratio=min_volume_ratio)
-    free = free_points(votes.seen, votes.inside, min_outside_fraction, min_outside=2)
-    crushed = votes.collapsed > max_collapsed_fraction * len(views.frames)
-    seen = votes.seen >= max(1, math.ceil(min_seen_fraction * len(views.frames)))
-    ghost = torch.zeros_like(free)
-    if ghost_test is not None:
-        candidates = torch.nonzero(~free & seen).squeeze(1)  # crushed ones too: they may be re-admitted
-        x_canonical = points[candidates]
-        misplaced = misplaced_votes(x_canonical, ghost_test.weights(x_canonical), skin, views.frames, ghost_test.bones)
-        ghost[candidates[misplaced > max_ghost_fraction * len(views.frames)]] = True
-    kept = (~free & ~crushed & ~ghost & seen).reshape(shape).numpy()
-    kept |= enclosed_cells(kept, (crushed & ~free & ~ghost & seen).reshape(shape).numpy())
+    cells = hull_cells(box, skin, views, cell_size, mask_dilation_px, min_outside_fraction, min_seen_fraction,
+                       min_volume_ratio, max_collapsed_fraction, ghost_test, max_ghost_fraction)
+    spacing = cells.spacing
+    kept = cells.kept.reshape(cells.shape).numpy()
     labels, count = ndimage.label(kept)
     if count == 0:
         return None
