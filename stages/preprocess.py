@@ -50,7 +50,7 @@ from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
 from igavatar.capture.ghost_limbs import GhostTest, PosedBones
 from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_SHARE, loose_share
-from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_prior_mesh, search_box, spread_views
+from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_cells, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import InputError
 from igavatar.geometry.projection import project_points
 from igavatar.skinning.bone_weights import BoneWeightConfig, build_bone_skinning_grid
@@ -279,7 +279,7 @@ def _hull_prior(
         bones=PosedBones.from_skeleton(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms),
         weights=lambda x: sample_skinning_weights(search_weights, lo, hi, x),
     )
-    hull = hull_prior_mesh(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M, ghost_test=ghost_test)
+    hull = hull_prior_mesh(hull_cells(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M, ghost_test=ghost_test))
     if hull is None:
         return None
     vertices = hull.vertices

@@ -19,7 +19,7 @@ import trimesh
 from igavatar.artifacts.manifest import read_artifact
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import forward_kinematics
-from igavatar.capture.visual_hull import MaskViews, enclosed_cells, hull_prior_mesh, search_box
+from igavatar.capture.visual_hull import MaskViews, enclosed_cells, hull_cells, hull_prior_mesh, search_box
 from igavatar.render.cameras import turntable_cameras
 from igavatar.synth.skeleton_capture import root_only_poses
 from igavatar_cli.main import app
@@ -35,7 +35,7 @@ def test_hull_mesh_of_two_spheres_is_closed_holds_them_and_leaves_the_gap():
     K = K.expand(n_views, 3, 3) if K.ndim == 2 else K
     masks = sphere_masks(K, w2c, size)
     views = MaskViews(masks=[m.numpy() for m in masks], K=K.numpy(), w2c=w2c.numpy(), frames=list(range(n_views)))
-    hull = hull_prior_mesh(BOX, lambda frame, x: x, views, cell_size=0.02, mask_dilation_px=1)
+    hull = hull_prior_mesh(hull_cells(BOX, lambda frame, x: x, views, cell_size=0.02, mask_dilation_px=1))
     assert hull is not None and hull.views == n_views and not hull.touches_box
     mesh = trimesh.Trimesh(hull.vertices.numpy(), hull.faces.numpy(), process=False)
     assert mesh.is_watertight and mesh.volume > 0  # closed, normals outwards
@@ -89,7 +89,7 @@ def test_crushed_space_walled_in_by_a_skirt_is_kept():
         inner = x[:, :2].norm(dim=1, keepdim=True) < core
         return torch.where(inner, x * torch.tensor([0.1, 0.1, 1.0]), x)
 
-    hull = hull_prior_mesh(box, skin, views, cell_size=0.02, mask_dilation_px=1)
+    hull = hull_prior_mesh(hull_cells(box, skin, views, cell_size=0.02, mask_dilation_px=1))
     mesh = trimesh.Trimesh(hull.vertices.numpy(), hull.faces.numpy(), process=False)
     assert mesh.is_watertight
     axis = np.array([[0.0, 0.0, z] for z in (-0.1, -0.05, 0.0, 0.05, 0.1)])

@@ -2,7 +2,7 @@
 
     bones = PosedBones.from_skeleton(skeleton, joints_canonical, bone_transforms)
     votes = misplaced_votes(points_canonical, weights, skin, frames, bones)   # (P,) int32 views
-    hull_prior_mesh(..., ghost_test=GhostTest(bones, weights_fn))             # igavatar.capture.visual_hull
+    hull_cells(..., ghost_test=GhostTest(bones, weights_fn))                  # igavatar.capture.visual_hull
     ghost = votes > 0.5 * len(frames)
 
 With the legs spread in canonical space and together in every training frame, the canonical

@@ -2,7 +2,7 @@
 
     views = MaskViews(masks, K, w2c, frames)                         # the training frames that vote
     votes = vote_masks(points_canonical, skin, views)                 # seen, inside: (P,) int32 each
-    prior = hull_prior_mesh(box, skin, views, cell_size=0.02)         # a closed mesh of the hull
+    prior = hull_prior_mesh(hull_cells(box, skin, views, cell_size=0.02))  # a closed mesh of the hull
 
 Forward skinning needs no root finding: `skin(frame, x_canonical)` pushes canonical points into a
 frame's world space, where they are projected into its mask. A point that a robust number of views
@@ -212,7 +212,9 @@ class HullCells:
     """The hull's rules on a canonical grid, each as a (P,) bool over the grid's points.
 
     Attributes:
-        points: (P, 3) grid points (`grid_points`); shape: its (D, H, W); spacing: its cell sizes.
+        points: (P, 3) grid points (`grid_points`), the first at the box's minimum corner;
+            shape: the grid's (D, H, W); spacing: its cell sizes; cell_size: the size asked for.
+        views: how many views voted.
         free: seen as background by a robust number of views.
         crushed: skinning squeezes the space around it in too many views.
         ghost: skinning lands it inside another limb in too many views (all False without a test).
@@ -223,6 +225,8 @@ class HullCells:
     points: torch.Tensor
     shape: tuple[int, int, int]
     spacing: list[float]
+    cell_size: float
+    views: int
     free: torch.Tensor
     crushed: torch.Tensor
     ghost: torch.Tensor
@@ -248,7 +252,30 @@ def hull_cells(
     ghost_test: GhostTest | None = None,
     max_ghost_fraction: float = 0.5,
 ) -> HullCells:
-    """Apply the hull's rules (see `hull_prior_mesh`) to a grid over a canonical box."""
+    """Apply the hull's rules to a grid over a canonical search box.
+
+    A grid point is kept when it is not free (see `free_points`), at least `min_seen_fraction`
+    of the views see it (a point no camera sees is no evidence of the subject), and skinning does
+    not crush the space around it in more than `max_collapsed_fraction` of the views. The last
+    rule removes folded space: with the legs spread in canonical space and together in every
+    frame, blended weights fold the canonical gap between the legs onto the posed legs, inside
+    every mask, where no silhouette can carve it; there the posed volume shrinks towards zero,
+    while on the body LBS moves space almost rigidly (ratio ~1). Space that rides rigidly into
+    another limb is not folded: with `ghost_test`, a point that skinning lands inside another
+    limb in more than `max_ghost_fraction` of the views is dropped too (ghost legs beside spread
+    canonical legs; igavatar.capture.ghost_limbs). Crushed space that the kept cells enclose in a
+    plane is kept after all (`enclosed_cells`): under a skirt the same folding crushes the canonical
+    space between the legs, but there it is the inside of the garment, walled in by the skirt, which
+    no view can carve or confirm. `hull_prior_mesh` meshes the kept cells.
+
+    Args:
+        box: (2, 3) canonical search box (generous: the subject must lie inside).
+        skin, views, mask_dilation_px, min_outside_fraction: as `vote_masks` / `free_points`.
+        cell_size: grid spacing in meters.
+        min_seen_fraction: of the views, how many must see a point for it to count.
+        min_volume_ratio, max_collapsed_fraction: the crushed-space rule above.
+        ghost_test, max_ghost_fraction: the ghost-limb rule above (None: not tested).
+    """
     box = torch.as_tensor(box).detach().float().cpu()
     points, shape = grid_points(box[0], box[1], cell_size)
     spacing = grid_spacing(box[0], box[1], shape)
@@ -264,54 +291,18 @@ def hull_cells(
         ghost[candidates[misplaced > max_ghost_fraction * len(views.frames)]] = True
     kept = (~free & ~crushed & ~ghost & seen).reshape(shape).numpy()
     walled_in = enclosed_cells(kept, (crushed & ~free & ~ghost & seen).reshape(shape).numpy())
-    return HullCells(points=points, shape=shape, spacing=spacing, free=free, crushed=crushed, ghost=ghost, seen=seen,
-                     walled_in=torch.from_numpy(walled_in.reshape(-1)))
+    return HullCells(points=points, shape=shape, spacing=spacing, cell_size=float(cell_size), views=len(views.frames),
+                     free=free, crushed=crushed, ghost=ghost, seen=seen, walled_in=torch.from_numpy(walled_in.reshape(-1)))
 
 
-def hull_prior_mesh(
-    box: torch.Tensor,
-    skin: SkinFn,
-    views: MaskViews,
-    cell_size: float = 0.02,
-    mask_dilation_px: int = 2,
-    min_outside_fraction: float = 0.1,
-    min_seen_fraction: float = 0.5,
-    min_volume_ratio: float = 0.3,
-    max_collapsed_fraction: float = 0.5,
-    ghost_test: GhostTest | None = None,
-    max_ghost_fraction: float = 0.5,
-) -> HullPrior | None:
-    """Mesh the visual hull's kept cells in a canonical search box; None if nothing is kept.
+def hull_prior_mesh(cells: HullCells) -> HullPrior | None:
+    """Mesh the hull's kept cells (`hull_cells`); None if nothing is kept.
 
-    A grid point is kept when it is not free (see `free_points`), at least `min_seen_fraction`
-    of the views see it (a point no camera sees is no evidence of the subject), and skinning does
-    not crush the space around it in more than `max_collapsed_fraction` of the views. The last
-    rule removes folded space: with the legs spread in canonical space and together in every
-    frame, blended weights fold the canonical gap between the legs onto the posed legs, inside
-    every mask, where no silhouette can carve it; there the posed volume shrinks towards zero,
-    while on the body LBS moves space almost rigidly (ratio ~1). Space that rides rigidly into
-    another limb is not folded: with `ghost_test`, a point that skinning lands inside another
-    limb in more than `max_ghost_fraction` of the views is dropped too (ghost legs beside spread
-    canonical legs; igavatar.capture.ghost_limbs). Crushed space that the kept cells enclose in a
-    plane is kept after all (`enclosed_cells`): under a skirt the same folding crushes the canonical
-    space between the legs, but there it is the inside of the garment, walled in by the skirt, which
-    no view can carve or confirm. Of the kept points the largest connected part
-    is meshed, its inner cavities filled, after a slight blur so that the surface is not
-    staircased at the grid's cells.
-
-    Args:
-        box: (2, 3) canonical search box (generous: the subject must lie inside).
-        skin, views, mask_dilation_px, min_outside_fraction: as `vote_masks` / `free_points`.
-        cell_size: grid spacing in meters.
-        min_seen_fraction: of the views, how many must see a point for it to count.
-        min_volume_ratio, max_collapsed_fraction: the crushed-space rule above.
-        ghost_test, max_ghost_fraction: the ghost-limb rule above (None: not tested).
+    Of the kept cells the largest connected part is meshed, its inner cavities filled, after a
+    slight blur so that the surface is not staircased at the grid's cells.
     """
     from skimage.measure import marching_cubes
 
-    box = torch.as_tensor(box).detach().float().cpu()
-    cells = hull_cells(box, skin, views, cell_size, mask_dilation_px, min_outside_fraction, min_seen_fraction,
-                       min_volume_ratio, max_collapsed_fraction, ghost_test, max_ghost_fraction)
     spacing = cells.spacing
     kept = cells.kept.reshape(cells.shape).numpy()
     labels, count = ndimage.label(kept)
@@ -325,11 +316,11 @@ def hull_prior_mesh(
     # Outward normals: the volume is high inside, which flips skimage's winding ('ascent'), and
     # reading its (z, y, x) axes as (x, y, z) below is a mirror, which flips it back: 'descent'.
     vertices_zyx, faces, _, _ = marching_cubes(volume, level=0.5, spacing=tuple(spacing), gradient_direction="descent")
-    vertices = vertices_zyx[:, ::-1] - np.asarray(spacing[::-1]) + box[0].numpy()  # (z, y, x) -> (x, y, z), undo the pad
+    vertices = vertices_zyx[:, ::-1] - np.asarray(spacing[::-1]) + cells.points[0].numpy()  # (z, y, x) -> (x, y, z), undo the pad
     faces = faces.astype(np.int64)
     return HullPrior(
         vertices=torch.from_numpy(np.ascontiguousarray(vertices, np.float32)), faces=torch.from_numpy(faces),
-        cell_size=float(cell_size), views=len(views.frames), touches_box=touches,
+        cell_size=cells.cell_size, views=cells.views, touches_box=touches,
     )
 
 

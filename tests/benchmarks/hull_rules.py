@@ -1,7 +1,7 @@
 """Which rule of the visual-hull prior keeps or drops the cells inside and outside the true surface.
 
 Runs `preprocess --shape-prior visual-hull` on a synthetic capture (into a temporary folder), with
-`visual_hull.hull_cells` wrapped so that each rule's verdict on the grid is kept, and counts,
+`hull_prior_mesh` wrapped so that the rules' verdicts it meshes (`HullCells`) are kept, and counts,
 against the capture's true canonical surface (`ground_truth/clothed_rest.npz`):
 cells inside the truth that a rule drops (lost shape) and cells more than one cell outside it
 that the rules keep (webs). The walled-in rule's re-admissions are listed apart.
@@ -17,7 +17,6 @@ from pathlib import Path
 
 import trimesh
 
-import igavatar.capture.visual_hull as visual_hull
 import stages.preprocess as preprocess
 from igavatar.avatar.canonical_report import canonical_truth
 from igavatar.avatar.dataset import read_dataset
@@ -29,14 +28,14 @@ def main() -> None:
     parser.add_argument("--capture", type=Path, required=True, help="a synthetic capture (igavatar synth)")
     args = parser.parse_args()
     recorded = []
-    original = visual_hull.hull_cells
+    original = preprocess.hull_prior_mesh
 
-    def recording(*args, **kwargs):
-        recorded.append(original(*args, **kwargs))
-        return recorded[-1]
+    def recording(cells):
+        recorded.append(cells)
+        return original(cells)
 
-    # The rules' verdicts are what hull_prior_mesh computes inside preprocess, so listen in there.
-    visual_hull.hull_cells = recording
+    # The verdicts are those preprocess meshes into its prior, so listen in on that call.
+    preprocess.hull_prior_mesh = recording
     with tempfile.TemporaryDirectory() as tmp:
         preprocess.run_preprocess(preprocess.PreprocessOptions(capture=args.capture, out=Path(tmp) / "dataset",
                                                                shape_prior="visual-hull"))
