@@ -197,6 +197,10 @@ def preprocess(
         help="auto: the body model's template, or the masks' visual hull in canonical space when there is no template "
              "or when 1 %+ of the subject's pixels lie 4 cm+ outside the posed template (a dress, a coat, long hair; "
              "needs 8+ training frames); template: the template always; visual-hull: the hull even over tight clothes.")] = "auto",
+    body_fit: Annotated[str, typer.Option(
+        help="A bare skeleton (joints only) of Anny's or SMPL's kind: anny fits the Anny body model to its joints "
+             "(proportions from the bones, average girth) and uses it as the template, with its skinning weights; "
+             "none keeps the masks' visual hull and bone-distance weights. Body-model captures ignore it.")] = "anny",
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
@@ -210,7 +214,7 @@ def preprocess(
         capture=capture or layout.capture, out=out or layout.dataset, input_format=input_format,
         max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution),
         weight_smoothing=weight_smoothing, weight_spread=weight_spread, anny_cache=anny_cache,
-        smpl_model=smpl_model, shape_prior=shape_prior, force=force,
+        smpl_model=smpl_model, shape_prior=shape_prior, body_fit=body_fit, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_preprocess(options, progress=progress)

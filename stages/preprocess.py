@@ -14,8 +14,10 @@ Dataset layout (schema `dataset`, version 1):
                          init_bones (I,) major bones root finding starts from,
                          skinning_grid (J,D,H,W), grid_box_min (3,), grid_box_max (3,),
                          canonical_box (2,3)
-    template.ply         canonical shape prior: the body model's template mesh, or the masks' visual
-                         hull in canonical space for a bare skeleton or for clothing the template
+    template.ply         canonical shape prior: the body model's template mesh (for a bare skeleton of
+                         Anny's or SMPL's kind, Anny fitted to its joints: manifest data
+                         subject.body_fit), or the masks' visual hull in canonical space for a bare
+                         skeleton without a body (--body-fit none, unknown kind) or for clothing the template
                          cannot grow into (capsules around a bare skeleton's bones when fewer than
                          MIN_HULL_VIEWS training frames can vote) (manifest data "shape_prior":
                          "template" | "visual_hull" | "capsules"; "loose_clothing" says why)
@@ -40,12 +42,14 @@ from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact
 from igavatar.body.capsules import capsule_prior
 from igavatar.body.skeleton import linear_blend_skinning
+from igavatar.capture.body_fit import BODY_FIT_VERSION, BODY_FITS, fits_body, fitted_subject
 from igavatar.capture.capture_v1 import CaptureV1, load_image, load_mask
 from igavatar.capture.contact_sheet import contact_sheet
 from igavatar.capture.importers import detect_layout, read_layout
 from igavatar.capture.images import resize_image, resize_mask, resize_plan, scale_intrinsics, undistort
 from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, PosedBody, estimate_mask
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
+from igavatar.capture.subject_skeleton import skeleton_subject
 from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
 from igavatar.capture.ghost_limbs import GhostTest, PosedBones
@@ -115,6 +119,7 @@ class PreprocessOptions:
     anny_cache: Path | None = None
     smpl_model: Path | None = None
     shape_prior: str = "auto"
+    body_fit: str = "anny"
     force: bool = False
 
     def config(self) -> dict:
@@ -293,20 +298,32 @@ def _hull_prior(
     return ShapePrior(vertices, hull.faces, "visual_hull", box_min, box_max, grid, _padded(posed_boxes))
 
 
+def _fits_body(capture: CaptureV1, options: PreprocessOptions) -> bool:
+    """Whether preprocess fits Anny to the capture's skeleton (a bare skeleton of a known kind)."""
+    if options.body_fit not in BODY_FITS:
+        raise InputError(f"--body-fit {options.body_fit!r}: choose one of {', '.join(BODY_FITS)}")
+    return capture.body_model == "skeleton" and options.body_fit == "anny" and fits_body(skeleton_subject(capture))
+
+
 def _dataset_config(options: PreprocessOptions, capture: CaptureV1, input_format: str) -> dict:
     """Everything that shapes the dataset (the manifest's config; compared to skip an unchanged run)."""
     if options.shape_prior not in SHAPE_PRIORS:
         raise InputError(f"--shape-prior {options.shape_prior!r}: choose one of {', '.join(SHAPE_PRIORS)}")
     config = options.config() | {"input_format": input_format}
-    if capture.body_model == "skeleton" and options.shape_prior == "template":
+    fitted = _fits_body(capture, options)
+    has_template = capture.body_model != "skeleton" or fitted
+    if fitted:
+        config["body_fit"] = {"model": "anny", "version": BODY_FIT_VERSION}
+    if not has_template and options.shape_prior == "template":
         raise InputError(
-            "--shape-prior template: the capture has a bare skeleton (no body-model template); "
-            "leave --shape-prior at auto (the masks' visual hull) or give SMPL/Anny poses"
+            "--shape-prior template: the capture has a bare skeleton and no body is fitted to it (--body-fit none, "
+            "or a skeleton whose joints are neither Anny's nor SMPL's); leave --shape-prior at auto (the masks' "
+            "visual hull) or give SMPL/Anny poses"
         )
-    if capture.body_model != "skeleton" and options.shape_prior == "auto":
+    if has_template and options.shape_prior == "auto":
         # The masks decide between the template and the hull: a change to the rule redoes the dataset.
         config["loose_clothing"] = {"version": LOOSE_RULE_VERSION, "distance_m": LOOSE_DISTANCE_M, "share": LOOSE_SHARE}
-    if capture.body_model == "skeleton" or options.shape_prior != "template":
+    if not has_template or options.shape_prior != "template":
         # The prior is computed here, not read: a change to how it is made must redo the dataset.
         config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
     if not capture.has_masks:
@@ -477,6 +494,8 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     check_output_target(out, "dataset", output_inputs)
     with clock("body_model_s"):
         subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
+        if "body_fit" in config:
+            subject = fitted_subject(subject, options.anny_cache, progress.status)
         canonical = canonicalize(subject)
     hull_views = _hull_views(capture, canonical, options)
     scale_xy, size_hw = resize_plan(capture.height, capture.width, options.max_size)

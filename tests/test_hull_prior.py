@@ -213,12 +213,13 @@ def test_volume_ratio_is_one_for_rigid_motion_and_small_where_space_is_crushed()
 
 
 def test_bare_skeleton_capture_gets_a_hull_prior_around_its_posed_truth(tmp_path):
-    """Anny's joints without a template: the prior comes from the masks and holds the subject."""
+    """Anny's joints without a template and without a body fitted to them: the prior comes from the masks
+    and holds the subject."""
     from igavatar.avatar.canonical_report import canonical_truth
     from igavatar.avatar.subject import SubjectArrays
 
     run_synth(SynthOptions(out=tmp_path / "capture", resolution=96, train_frames=10, test_frames=0, skeleton="bare", seed=5))
-    run_preprocess(PreprocessOptions(capture=tmp_path / "capture", out=tmp_path / "dataset", max_size=96))
+    run_preprocess(PreprocessOptions(capture=tmp_path / "capture", out=tmp_path / "dataset", max_size=96, body_fit="none"))
     data = read_artifact(tmp_path / "dataset", expected="dataset")
     assert data["data"]["shape_prior"] == "visual_hull" and data["config"]["hull_prior"]["version"] >= 2
     prior = trimesh.load(tmp_path / "dataset" / "template.ply", process=False)

@@ -136,8 +136,10 @@ def test_preprocess_undistorts_and_keeps_the_joints(subject, tmp_path):
     assert summary["frames"] == 6 and summary["train"] == 5 and summary["test"] == 1
     manifest = read_artifact(tmp_path / "dataset", expected="dataset")
     data = manifest["data"]
-    assert data["source_format"] == "humannerf" and data["shape_prior"] == "capsules"
-    assert data["subject"] == {"skeleton_kind": "smpl"} and data["image_size"] == [SIZE, SIZE]
+    # SMPL's skeleton without the SMPL file: Anny is fitted to it and is the template (igavatar.capture.body_fit).
+    assert data["source_format"] == "humannerf" and data["shape_prior"] == "template"
+    assert data["subject"]["skeleton_kind"] == "smpl" and data["subject"]["body_fit"]["model"] == "anny"
+    assert data["image_size"] == [SIZE, SIZE]
     hashed = {Path(record["path"]).name for record in manifest["inputs"]}
     assert {"cameras.pkl", "mesh_infos.pkl", "canonical_joints.pkl", "frame_000000.png"} <= hashed
     frames = np.load(tmp_path / "dataset" / "frames.npz")

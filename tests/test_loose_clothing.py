@@ -74,9 +74,14 @@ def test_auto_shape_prior_follows_the_masks(tmp_path, garment, expected):
         assert forced["shape_prior"] == "template" and "loose_clothing" not in forced
 
 
-def test_template_prior_on_a_bare_skeleton_is_a_clear_error(cli_runner, tmp_path):
+def test_template_prior_on_a_bare_skeleton_without_a_body_is_a_clear_error(cli_runner, tmp_path):
     run_synth(SynthOptions(out=tmp_path / "capture", resolution=64, train_frames=8, test_frames=0, skeleton="bare"))
     result = cli_runner.invoke(app, ["preprocess", "--capture", str(tmp_path / "capture"), "--out", str(tmp_path / "d"),
-                                     "--shape-prior", "template"])
+                                     "--shape-prior", "template", "--body-fit", "none"])
     assert result.exit_code == 2 and "bare skeleton" in result.output and "auto" in result.output
     assert not (tmp_path / "d").exists()
+    # With Anny fitted to the joints (the default) there is a template to keep.
+    result = cli_runner.invoke(app, ["preprocess", "--capture", str(tmp_path / "capture"), "--out", str(tmp_path / "d"),
+                                     "--shape-prior", "template"])
+    assert result.exit_code == 0, result.output
+    assert read_artifact(tmp_path / "d", expected="dataset")["data"]["shape_prior"] == "template"

@@ -61,7 +61,9 @@ def canonical_section(
     """The report's `canonical` section and its front/side picture; (None, None) without a template.
 
     The limb check needs the template's vertices grouped by body part, so it runs for body models
-    with named joints (Anny, SMPL); a bare skeleton gets the comparison with the truth only.
+    with named joints (Anny, SMPL) and for a bare skeleton of such a kind with a body fitted to it
+    (its template is then that fit, not the subject's own body); any other bare skeleton gets the
+    comparison with the truth only.
     """
     prior_path = dataset.path / PRIOR_FILE
     if not prior_path.is_file():
@@ -73,7 +75,9 @@ def canonical_section(
     template_v, template_f = _mesh_arrays(body_path) if naked and body_path != prior_path else (prior_v, prior_f)
     subject = dataset.subject
     truth = canonical_truth(capture_dir, subject)
-    kind = dataset.body_model if dataset.body_model in NAMED_SKELETONS else None
+    # A bare skeleton of a named kind has a template when a body was fitted to it (igavatar.capture.body_fit).
+    kind = dataset.body_model if dataset.body_model in NAMED_SKELETONS else dataset.data.get("subject", {}).get("skeleton_kind")
+    kind = kind if kind in NAMED_SKELETONS else None
     joint_names = list(subject.joint_names)
     labels = np.full(len(template_v), -1, np.int64)
     gap = None

@@ -43,11 +43,13 @@ SUBJECTS: dict[str, list[str]] = {
     "plain-heavy": ["--seed", "11", "--phenotype", "gender=0.2", "--phenotype", "weight=0.8", "--phenotype", "height=0.8",
                     "--texture", "plain"],
 }
-#: Subjects not run by default: the skeleton-only path (the same subjects' joints, no template:
-#: the prior is the masks' visual hull) and a static subject (one root joint, held still while it
+#: Subjects not run by default: the same subjects as bare skeletons (their joints, no template:
+#: Anny fitted to the joints by default, `-bare-nofit` the skeleton-only path whose prior is the
+#: masks' visual hull) and a static subject (one root joint, held still while it
 #: turns, so its only test frames are the hold-out turn's new views).
 EXTRA_SUBJECTS: dict[str, list[str]] = {
     **{f"{name}-bare": [*args, "--skeleton", "bare"] for name, args in SUBJECTS.items()},
+    **{f"{name}-bare-nofit": [*args, "--skeleton", "bare"] for name, args in SUBJECTS.items()},
     "static-root": ["--seed", "3", "--skeleton", "root", "--test-frames", "0", "--texture", "checker"],
     **{f"{name}-hull": args for name, args in SUBJECTS.items()},
     **{f"{name}-sharp{n}": args for name, args in SUBJECTS.items() for n in (2, 8, 15, 30)},
@@ -57,6 +59,8 @@ EXTRA_SUBJECTS: dict[str, list[str]] = {
 #: hull as the shape prior instead of the naked template.
 PREPROCESS_ARGS: dict[str, list[str]] = {
     **{f"{name}-hull": ["--shape-prior", "visual-hull"] for name in SUBJECTS},
+    # The skeleton-only path: no body fitted to the bare skeleton (the masks' hull, bone weights).
+    **{f"{name}-bare-nofit": ["--body-fit", "none"] for name in SUBJECTS},
     # The template's skinning weights blurred by n passes (the default is 15; 30 was InstantAvatar's and ours before).
     # (the blurred grid alone: --weight-spread 0; 15 passes were the default before the spread)
     **{f"{name}-sharp{n}": ["--weight-smoothing", str(n), "--weight-spread", "0"] for name in SUBJECTS for n in (2, 8, 15, 30)},
