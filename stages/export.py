@@ -406,7 +406,7 @@ def _write_textured(tmp: Path, model: ModelArtifact, textured: TexturedMesh, opt
     (folder / "avatar.png").write_bytes(png)
     files = ["textured/avatar.png"]
     if "obj" in options.formats:
-        axes = gltf_axes(model.body_model)
+        axes = gltf_axes(model.axes_kind)
         obj, mtl = textured_obj(textured.vertices.astype(np.float64) @ axes.T, textured.faces, textured.uv,
                                 "avatar.mtl", "avatar.png")
         (folder / "avatar.obj").write_text(obj)

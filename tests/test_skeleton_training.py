@@ -104,3 +104,17 @@ def test_tiny_training_learns_and_the_sdf_has_a_body_inside_the_capsules(skeleto
     # and the box's corners outside, so there is a surface between them.
     assert float(sdf_inside[0]) < 0 and int(subject.init_bones[0]) == 0, sdf_inside
     assert bool((sdf_corners > 0).all()), sdf_corners
+
+
+def test_a_bare_anny_skeleton_keeps_annys_world_axes(skeleton_run):
+    """Anny's joints come in Anny's +Z-up world: the GLB and the orbit cameras must turn it as they
+    turn an Anny avatar, not as SMPL's Y-up (assumed only for skeletons of unknown kind)."""
+    from igavatar.avatar.model import load_model
+    from igavatar.body.motions import body_to_world
+    from igavatar.mesh.gltf import gltf_axes
+
+    model = load_model(skeleton_run / "model")
+    assert model.body_model == "skeleton" and model.axes_kind == "anny"
+    np.testing.assert_array_equal(model.body_axes, body_to_world("anny"))
+    head_up = gltf_axes(model.axes_kind) @ body_to_world("anny")[:, 1]  # the body's up, in glTF
+    np.testing.assert_allclose(head_up, [0.0, 1.0, 0.0])

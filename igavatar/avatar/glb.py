@@ -44,7 +44,7 @@ def write_model_glb(
     """
     subject = model.subject
     parents = np.asarray(subject.parents, dtype=np.int64)
-    axes = gltf_axes(model.body_model)
+    axes = gltf_axes(model.axes_kind)
     animation = None
     if motion is not None:
         rotations, translation, fps = motion
