@@ -496,6 +496,8 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
         subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
         if "body_fit" in config:
             subject = fitted_subject(subject, options.anny_cache, progress.status)
+            if subject.template_vertices_rest is None and options.shape_prior == "template":
+                raise InputError(f"--shape-prior template: {subject.description['body_fit']['rejected']}")
         canonical = canonicalize(subject)
     hull_views = _hull_views(capture, canonical, options)
     scale_xy, size_hw = resize_plan(capture.height, capture.width, options.max_size)

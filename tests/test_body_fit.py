@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -122,3 +124,25 @@ def test_a_skeleton_of_unknown_kind_keeps_the_masks_only_path(tiny_skeleton_capt
     manifest = read_artifact(tmp_path / "dataset", expected="dataset")
     assert "body_fit" not in manifest["config"] and manifest["data"]["subject"] == {"skeleton_kind": "unknown"}
     assert manifest["data"]["shape_prior"] == "capsules"
+
+
+def test_a_fit_no_human_body_gives_is_not_used(model, tmp_path):
+    """SMPL's tree with its rest joints in centimetres: Anny cannot reach them, so the body is dropped and said why."""
+    from igavatar.body.skeleton import Skeleton
+    from igavatar.capture.body_fit import MAX_JOINT_RMS_M, fitted_subject
+    from igavatar.capture.posed_subject import PosedSubject
+
+    nominal = nominal_smpl_skeleton()
+    centimetres = Skeleton(nominal.parents, nominal.rest_joints * 100.0, nominal.joint_names)
+    subject = PosedSubject(
+        body_model="skeleton", skeleton=centimetres, local_rotations=torch.eye(3).expand(1, 24, 3, 3),
+        root_translation=torch.zeros(1, 3), canonical_rotations=torch.eye(3).expand(24, 3, 3),
+        template_vertices_rest=None, template_faces=None, template_weights=None,
+        description={"skeleton_kind": "smpl"}, init_bones=(0,),
+    )
+    said = []
+    kept = fitted_subject(subject, on_status=said.append)
+    assert kept.template_vertices_rest is None and "meters" in kept.description["body_fit"]["rejected"]
+    assert said and str(int(1000 * MAX_JOINT_RMS_M)) in said[0]
+    # In meters the same skeleton is fitted.
+    assert fitted_subject(replace(subject, skeleton=nominal)).template_vertices_rest is not None

@@ -24,8 +24,9 @@ What is fitted, and what is not:
   the range still fits inside every mask). Both stay at Anny's average, 0.5: training takes the
   surface to the masks from there, and the trainer's body-inside term checks the template
   against the masks before it trusts it (igavatar.training.body_prior).
-- **Pose.** Anny's named bones are turned onto the skeleton's rest bone directions
-  (igavatar.body.retarget's rest-pose correction); a skeleton with Anny's bones needs no turn.
+- **Pose.** Anny's limb bones are turned onto the skeleton's rest bone directions
+  (igavatar.body.retarget's rest-pose correction) while its torso stands as in Anny's rest pose;
+  a skeleton with Anny's bones needs no turn.
 
 Weights: each Anny bone hands its weight to the skeleton joint of the same name, else to the joint
 of its nearest ancestor that names a body part (twist bones to their limb, fingers to the wrist,
@@ -55,8 +56,8 @@ __all__ = ["AnnyFit", "FITTED_PHENOTYPES", "fit_anny_to_skeleton", "anny_bone_ta
 FITTED_PHENOTYPES: tuple[str, ...] = ("gender", "age", "height", "proportions")
 #: (part, part) pairs whose distances a cross-rig fit matches: the limb bones, the trunk (neck to
 #: hips) and the shoulder width. Left out: the spine's inner joints, the collars and the hip width,
-#: which the rigs place differently (SMPL's hips are 12 cm apart and 9 cm below its pelvis joint,
-#: Anny's 20 cm apart at its root's height).
+#: which the rigs place differently (igavatar's nominal SMPL skeleton has its hips 12 cm apart and
+#: 9 cm below its pelvis joint, Anny its 20 cm apart at its root's height).
 _CROSS_RIG_PAIRS: tuple[tuple[str, str], ...] = tuple(
     (f"{side}_{a}", f"{side}_{b}")
     for side in ("left", "right")
@@ -69,6 +70,10 @@ _CROSS_RIG_PAIRS: tuple[tuple[str, str], ...] = tuple(
 _REBOUND_PARTS: tuple[str, ...] = ("neck", "head") + tuple(
     f"{side}_{part}" for side in ("left", "right") for part in ("upper_arm", "forearm", "hand", "thigh", "shin", "foot")
 )
+#: Parts a cross-rig fit leaves in Anny's rest pose: the torso stands as Anny's does, since the rigs
+#: run the spine through the body differently (turning Anny's spine bones onto SMPL's bent its torso
+#: forward by several centimetres at the shoulders); the limbs turn onto the skeleton's.
+_TORSO_PARTS = frozenset({"pelvis", "spine_lower", "spine_mid", "spine_upper", "neck", "head"})
 #: L-BFGS rounds of up to 100 iterations each (the fit converges in two on the synthetic subjects).
 _LBFGS_ROUNDS = 3
 
@@ -216,7 +221,8 @@ def _posed_fit(body: AnnyBody, skeleton: Skeleton, kind: str, phenotype: dict[st
         pairs = [(b, skeleton.index(label)) for b, label in enumerate(anny.joint_names)]
     else:
         identity = torch.eye(3, dtype=torch.float64).expand(1, skeleton.num_joints, 3, 3)
-        rotations, _ = retarget_rotations(identity, torch.zeros(1, 3, dtype=torch.float64), skeleton, kind, anny, "anny")
+        rotations, _ = retarget_rotations(identity, torch.zeros(1, 3, dtype=torch.float64), skeleton, kind, anny, "anny",
+                                          uncorrected=_TORSO_PARTS)
         # Column vectors: x_anny = A x_skeleton with A = body_to_world(anny) body_to_world(kind)^T.
         to_skeleton = (body_to_world("anny") @ body_to_world(kind).T).T
         anny_names, kind_names = semantic_joint_map("anny"), semantic_joint_map(kind)

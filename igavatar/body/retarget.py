@@ -121,6 +121,7 @@ def retarget_rotations(
     source_kind: str,
     target: Skeleton,
     target_kind: str,
+    uncorrected: frozenset[str] = frozenset(),
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Local rotations and root translation for `target` that reproduce a `source` pose sequence.
 
@@ -129,6 +130,9 @@ def retarget_rotations(
         source_translation: (N, 3) source root translation (meters, source world axes).
         source, target: the two skeletons (rest joints and names; the kinds' joint names).
         source_kind, target_kind: skeleton kinds of igavatar.body.motions ('smpl', 'anny').
+        uncorrected: parts that take no rest-pose correction (they keep the target's rest
+            direction relative to the source's rotation), e.g. the spine when the two rigs run it
+            through the body differently.
     Returns:
         local_rotations (N, Jt, 3, 3) and root_translation (N, 3), float64, for forward_kinematics
         with `target` (see the module docstring for what is transferred).
@@ -159,7 +163,7 @@ def retarget_rotations(
     wanted: dict[int, torch.Tensor] = {}
     for part, source_name in source_names.items():
         in_target = axes @ source_global[:, source.index(source_name)] @ axes.T
-        correction = torch.as_tensor(corrections.get(part, np.eye(3)))
+        correction = torch.as_tensor(np.eye(3) if part in uncorrected else corrections.get(part, np.eye(3)))
         wanted[target.index(target_names[part])] = in_target @ correction
 
     n_frames = rotations.shape[0]

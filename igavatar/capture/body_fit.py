@@ -28,6 +28,10 @@ BODY_FITS: tuple[str, ...] = ("anny", "none")
 BODY_FIT_VERSION = 1
 #: Skeleton kinds the fit knows how to name (igavatar.body.bones.skeleton_kind).
 FITTABLE_KINDS: tuple[str, ...] = ("anny", "smpl")
+#: A fit whose joints lie further than this (RMS, meters, before rebinding) from the skeleton's is
+#: not used: no human body has those bones (a skeleton in centimetres, a non-human rig with human
+#: names). Anny's own joints fit to under a millimetre, SMPL-convention adult skeletons to 4-6 cm.
+MAX_JOINT_RMS_M = 0.15
 
 
 def fits_body(subject: PosedSubject) -> bool:
@@ -41,13 +45,22 @@ def fitted_subject(
     """`subject` with Anny fitted to its skeleton as the template (unchanged unless `fits_body`).
 
     The template lies in the skeleton's rest pose with weights over its joints, as a body model's
-    would; the subject's description gains "body_fit" (the phenotype and the joint residual).
+    would; the subject's description gains "body_fit" (the phenotype and the joint residual). A fit
+    that no human body gives (joint RMS over MAX_JOINT_RMS_M) is not used: the subject keeps no
+    template, its description says why and `on_status` is told.
     Raises BodyModelError when Anny cannot be loaded.
     """
     if not fits_body(subject):
         return subject
     kind = subject.description["skeleton_kind"]
     fit = fit_anny_to_skeleton(load_anny(anny_cache, on_status), subject.skeleton, kind)
+    if fit.joint_rms_m > MAX_JOINT_RMS_M:
+        why = (f"Anny fitted to the {kind} skeleton leaves its joints {1000 * fit.joint_rms_m:.0f} mm (RMS) from the "
+               f"skeleton's (more than {1000 * MAX_JOINT_RMS_M:.0f}): are the rest joints in meters? The body is not "
+               "used; the shape prior comes from the masks")
+        if on_status is not None:
+            on_status(why)
+        return replace(subject, description={**subject.description, "body_fit": {"model": "anny", "rejected": why}})
     return replace(
         subject,
         template_vertices_rest=fit.vertices,
