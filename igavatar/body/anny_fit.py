@@ -120,7 +120,8 @@ def anny_bone_targets(anny_skeleton: Skeleton, skeleton: Skeleton, kind: str) ->
     """(104,) the skeleton joint each Anny bone's weight goes to.
 
     A bone whose label the skeleton has goes to that joint; any other to the joint of its nearest
-    ancestor that names a body part of igavatar.body.motions (the root names the pelvis).
+    ancestor that names a body part of igavatar.body.motions (Anny's root names the pelvis, so
+    every chain ends at a part).
     """
     anny_parts = {name: part for part, name in semantic_joint_map("anny").items()}
     kind_names = semantic_joint_map(kind)
@@ -131,10 +132,9 @@ def anny_bone_targets(anny_skeleton: Skeleton, skeleton: Skeleton, kind: str) ->
             targets[b] = skeleton.index(label)
             continue
         k = b
-        while k >= 0 and anny_skeleton.joint_names[k] not in anny_parts:
+        while anny_skeleton.joint_names[k] not in anny_parts:
             k = int(anny_skeleton.parents[k])
-        part = anny_parts[anny_skeleton.joint_names[k]] if k >= 0 else "pelvis"
-        targets[b] = skeleton.index(kind_names[part])
+        targets[b] = skeleton.index(kind_names[anny_parts[anny_skeleton.joint_names[k]]])
     return targets
 
 
@@ -190,22 +190,20 @@ def fit_anny_to_skeleton(model: "anny.Anny", skeleton: Skeleton, kind: str) -> A
             return ((heads - heads[0] - target) ** 2).sum(-1).mean()
     else:
         anny_names = semantic_joint_map("anny")
-        pairs = _CROSS_RIG_PAIRS
-        anny_index = [(anny_labels.index(anny_names[a]), anny_labels.index(anny_names[b])) for a, b in pairs]
+        anny_index = [(anny_labels.index(anny_names[a]), anny_labels.index(anny_names[b])) for a, b in _CROSS_RIG_PAIRS]
         lengths = torch.stack([
-            (rest[skeleton.index(kind_names[b])] - rest[skeleton.index(kind_names[a])]).norm() for a, b in pairs
+            (rest[skeleton.index(kind_names[b])] - rest[skeleton.index(kind_names[a])]).norm()
+            for a, b in _CROSS_RIG_PAIRS
         ])
 
         def loss(heads: torch.Tensor) -> torch.Tensor:
             anny_lengths = torch.stack([(heads[b] - heads[a]).norm() for a, b in anny_index])
             return ((anny_lengths - lengths) ** 2).mean()
 
-    phenotype = _fit_phenotype(model, loss)
-    body = AnnyBody(model, phenotype)
-    return _posed_fit(body, skeleton, kind, phenotype, same_rig)
+    return _posed_fit(AnnyBody(model, _fit_phenotype(model, loss)), skeleton, kind, same_rig)
 
 
-def _posed_fit(body: AnnyBody, skeleton: Skeleton, kind: str, phenotype: dict[str, float], same_rig: bool) -> AnnyFit:
+def _posed_fit(body: AnnyBody, skeleton: Skeleton, kind: str, same_rig: bool) -> AnnyFit:
     """The fitted body turned into the skeleton's rest pose and rebound onto its joints, weights mapped.
 
     Rebinding: after the best common translation, each compared joint j of Anny still lies d_j
@@ -246,7 +244,7 @@ def _posed_fit(body: AnnyBody, skeleton: Skeleton, kind: str, phenotype: dict[st
         vertices=torch.as_tensor(rebound, dtype=torch.float32),
         faces=body.faces.clone(),
         weights=weights.to(torch.float32),
-        phenotype=phenotype,
+        phenotype=dict(body.phenotype),
         joint_rms_m=float(np.sqrt(np.mean(distance**2))),
         joint_max_m=float(distance.max()),
         joints_compared=len(pairs),

@@ -66,7 +66,7 @@ def gltf_axes(body_model: str) -> np.ndarray:
     """(3, 3) rotation from a body model's world frame to glTF's (+X left, +Y up, +Z forward).
 
     Anny: +Z up, facing -Y -> (x, z, -y). SMPL is already Y-up, Z-forward (identity). A bare
-    skeleton of unknown kind has no convention of their own; SMPL's is assumed, as elsewhere in
+    skeleton of unknown kind has no convention of its own; SMPL's is assumed, as elsewhere in
     igavatar (callers pass a bare skeleton's kind when it has one: ModelArtifact.axes_kind).
     """
     kind = body_model if body_model in ("anny", "smpl") else "smpl"
