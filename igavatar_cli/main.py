@@ -241,6 +241,7 @@ def train(
     smooth_form: Annotated[
         Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")
     ] = None,
+    smooth_band: Annotated[Optional[float], typer.Option(help="L_smooth along rays compares only samples whose SDF lies within this many meters of the zero level (the surface's normals, not those of the empty space under a crotch or an armpit) \\[default: the preset's].")] = None,
     beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts \\[default: the preset's].")] = None,
     beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~3 beta outside the zero level (meshes are made there, see export --surface-level), so a smaller cap means a sharper surface \\[default: the preset's].")] = None,
     free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
@@ -266,7 +267,7 @@ def train(
     layout = RunLayout(run_dir)
     options = TrainOptions(
         dataset=dataset or layout.dataset, out=out or layout.model, preset=preset, steps=steps, rays_per_step=rays,
-        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form,
+        samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form, smooth_band=smooth_band,
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume,

@@ -72,6 +72,7 @@ class TrainOptions:
     beta_final: float | None = None
     free_space_weight: float | None = None
     body_inside_weight: float | None = None
+    smooth_band: float | None = None
     body_inside_max_spill: float | None = None
     table_adam: str | None = None
     table_lr_factor: float | None = None
@@ -85,7 +86,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
     config = with_overrides(
         preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
         samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
-        sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form,
+        sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form, smooth_band=options.smooth_band,
         table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
     )
     weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight),

@@ -147,6 +147,26 @@ def test_smooth_loss_pairs_consecutive_valid_samples_across_gaps() -> None:
     assert float(smooth_loss_along_ray(normals, only_ray_1)) == pytest.approx(hand, rel=1e-5)
 
 
+def test_smooth_loss_band_keeps_only_samples_near_the_zero_level() -> None:
+    # One ray under a crease: the distance field's normals turn along it in empty space (sdf 2-5
+    # cm) while the samples at the surface it ends on (|sdf| < 1 cm) agree.
+    gen = torch.Generator().manual_seed(3)
+    turning = torch.nn.functional.normalize(torch.randn(1, 5, 3, generator=gen), dim=-1)
+    surface = torch.tensor([0.0, 0.0, 1.0]).expand(1, 3, 3)
+    normals = torch.cat((turning, surface), dim=1)
+    sdf = torch.tensor([[0.05, 0.04, 0.03, 0.025, 0.02, 0.008, 0.0, -0.006]])
+    valid = torch.ones(1, 8, dtype=torch.bool)
+    assert float(smooth_loss_along_ray(normals, valid)) > 0.1
+    banded = smooth_loss_along_ray(normals, valid, sdf=sdf, band=0.01)
+    assert float(banded) == 0.0
+    # The band is the same as marking the far samples invalid.
+    near = sdf.abs() < 0.015
+    assert float(smooth_loss_along_ray(normals, valid, sdf=sdf, band=0.015)) == pytest.approx(
+        float(smooth_loss_along_ray(normals, valid & near)), rel=1e-6)
+    with pytest.raises(ValueError, match="band needs sdf"):
+        smooth_loss_along_ray(normals, valid, band=0.01)
+
+
 def test_smooth_loss_is_invariant_to_compaction() -> None:
     gen = torch.Generator().manual_seed(6)
     normals = torch.randn(8, 12, 3, generator=gen)

@@ -176,6 +176,8 @@ def smooth_loss_along_ray(
     t_starts: Tensor | None = None,
     t_ends: Tensor | None = None,
     positions: Tensor | None = None,
+    sdf: Tensor | None = None,
+    band: float | None = None,
 ) -> Tensor:
     """Paper Eq. 9: normals at consecutive valid samples of each ray should agree.
 
@@ -207,6 +209,10 @@ def smooth_loss_along_ray(
         t_starts, t_ends: (R, S) sample intervals along the ray; required for ``pairs="adjacent"``.
         positions: (R, S, 3) sample positions in the gradients' frame; required for
             ``pairs="monotone"``.
+        sdf, band: (R, S) SDF values and meters: only samples with ``|sdf| < band`` take part, as
+            if the others were invalid: the surface's normals are smoothed, not those of the
+            distance field in empty space (under a crotch, whose smoothing fills the crease).
+            None: every valid sample.
 
     Returns:
         Scalar; 0 when no ray has a pair.
@@ -235,6 +241,10 @@ def smooth_loss_along_ray(
         )
     r, s, _ = gradients.shape
     valid = valid.bool()
+    if band is not None:
+        if sdf is None or sdf.shape != valid.shape:
+            raise ValueError(f"smooth_loss_along_ray: band needs sdf of shape {tuple(valid.shape)}")
+        valid = valid & (sdf.detach().abs() < band)
     n_hat = F.normalize(gradients, dim=-1, eps=_NORMAL_EPS)
     # Pack each ray's valid samples to the front in order (slot = number of valid samples
     # before it; invalid ones go to a spare last column), so consecutive valid samples are

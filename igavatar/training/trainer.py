@@ -211,7 +211,7 @@ class Trainer:
         elif reg == "smooth":
             terms["smooth"] = smooth_loss_along_ray(
                 out.gradient, valid, pairs=config.smooth_pairs, t_starts=samples.t_starts, t_ends=samples.t_ends,
-                positions=samples.positions,
+                positions=samples.positions, sdf=out.sdf, band=config.smooth_band,
                 normalization="released" if config.smooth_form == "released" else "samples",
             )
         if reg in ("fd-eikonal", "curvature", "fd-eikonal+curvature") and x_rigid.shape[0] > 0:
