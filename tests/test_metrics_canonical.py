@@ -68,6 +68,28 @@ def test_leg_gap_check_finds_a_web_and_accepts_open_legs():
     assert leg_gap_check(*webbed, gap, webbed)["points"] == 0
 
 
+def test_leg_gap_check_does_not_judge_points_next_to_the_true_crotch():
+    """A crotch 1 cm low fills a gap point 1 cm under the true one: a misplaced crotch, not a web."""
+    index = {"left_thigh": 0, "right_thigh": 1, "left_shin": 2, "right_shin": 3}
+    joints = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0.25, 0, -0.45], [-0.25, 0, -0.45]])
+    gap = leg_gap_points(joints, index)
+    legs = [trimesh.creation.cylinder(radius=0.06, segment=(joints[i], joints[i + 2])) for i in (0, 1)]
+
+    def with_shorts(bottom: float):
+        shorts = trimesh.creation.box(bounds=((-0.2, -0.06, bottom), (0.2, 0.06, 0.05)))
+        return _union(*legs, shorts)
+
+    first = gap[:, 2].max()
+    truth = with_shorts(first + 0.01)  # the true crotch 1 cm above the first gap point
+    low = leg_gap_check(*with_shorts(first - 0.01), gap, truth)  # the crotch 2 cm low
+    assert low["passed"] and low["near_points"] >= 1 and low["near_filled"] >= 1
+    assert low["points"] == len(gap) - low["near_points"] and low["clearance_m"] == 0.02
+    web = leg_gap_check(*with_shorts(-0.3), gap, truth)  # down to two thirds of the thighs
+    assert not web["passed"] and web["webbed"] > 0.3
+    # Judged strictly (no clearance) the low crotch is a web.
+    assert not leg_gap_check(*with_shorts(first - 0.01), gap, truth, clearance=0.0)["passed"]
+
+
 def test_rest_to_canonical_is_exact_for_a_rotated_joint():
     rest_joints = np.array([[0.0, 0, 0], [0.0, 0, 0.5]])
     parents = np.array([-1, 0])
