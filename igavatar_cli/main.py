@@ -234,7 +234,7 @@ def train(
     regularizer: Annotated[
         Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe.")
     ] = None,
-    smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works) \\[default: the preset's: cpu 0.5, paper 1].")] = None,
+    smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works) \\[default: 1].")] = None,
     smooth_pairs: Annotated[
         Optional[str], typer.Option(help="L_smooth pairs: monotone (consecutive samples on a ray across which the SDF runs one way: no flip at a ridge of the distance field inside a thin part or in a gap, such as between the legs), valid (every consecutive pair, also across gaps; Eq. 9 read literally), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code) \\[default: monotone].")
     ] = None,

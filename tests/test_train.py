@@ -332,10 +332,10 @@ def test_body_inside_term_reads_the_template_and_is_checked(small_run, cli_runne
                   body_template=template)
     assert off.body_inside is None and "body_inside" not in off.train_step()
     assert preset("cpu").loss_weights.body_inside > 0 and preset("paper").loss_weights.body_inside == 0
-    # L_smooth's weight goes with the body prior: 0.5 where it is on (smooth-weight.md), the paper's 1 elsewhere.
-    assert preset("cpu").loss_weights.smooth == 0.5 and preset("paper").loss_weights.smooth == 1.0
+    # L_smooth at the paper's weight 1 in both presets (smooth-band-weight.md); --smooth-weight overrides it.
+    assert preset("cpu").loss_weights.smooth == 1.0 and preset("paper").loss_weights.smooth == 1.0
     assert resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="cpu",
-                                       smooth_weight=1.0)).loss_weights.smooth == 1.0
+                                       smooth_weight=0.5)).loss_weights.smooth == 0.5
     resolved = resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny", body_inside_weight=2.0))
     assert resolved.loss_weights.body_inside == 2.0
     # The model manifest records the check (validated against schemas/model.schema.json on write).

@@ -206,13 +206,13 @@ def preset(name: str) -> TrainConfig:
             shape_init_steps=300, shape_init_points=8192, validate_every=500, checkpoint_every=250,
             validation_scale=0.5, validation_samples=96, avatar=_cpu_avatar(),
             # The naked body inside the clothes keeps the fingers and toes that a pixel-wide
-            # silhouette cannot hold (tests/benchmarks/results/body-prior.md). With it, L_smooth
-            # at 0.5 (the low end of the paper's 0.5-1.5) beat weight 1 and `none` in CD-L1 and NC
-            # on more runs than weight 1 did; 2 was worse (tests/benchmarks/results/smooth-weight.md).
-            loss_weights=LossWeights(body_inside=10.0, smooth=0.5),
+            # silhouette cannot hold (tests/benchmarks/results/body-prior.md).
             # L_smooth on the surface's normals only: over every sample it also smoothed the
             # distance field in the empty space under the crotch, which grew the crotch 3.5 cm
-            # down into the gap between the legs (tests/benchmarks/results/smooth-band.md).
+            # down into the gap between the legs (tests/benchmarks/results/smooth-band.md). On the
+            # surface only, the paper's weight 1 beats 0.5 (which had been the best weight over
+            # every sample, smooth-weight.md) on 7 of 9 runs (smooth-band-weight.md).
+            loss_weights=LossWeights(body_inside=10.0, smooth=1.0),
             smooth_band=0.01,
         )
     if name == "tiny":
