@@ -69,7 +69,7 @@ def test_leg_gap_check_finds_a_web_and_accepts_open_legs():
 
 
 def test_leg_gap_check_does_not_judge_points_next_to_the_true_crotch():
-    """A crotch 1 cm low fills a gap point 1 cm under the true one: a misplaced crotch, not a web."""
+    """A crotch 2 cm low fills the gap point 1 cm under the true one: a misplaced crotch, not a web."""
     index = {"left_thigh": 0, "right_thigh": 1, "left_shin": 2, "right_shin": 3}
     joints = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0.25, 0, -0.45], [-0.25, 0, -0.45]])
     gap = leg_gap_points(joints, index)

@@ -145,19 +145,17 @@ def leg_gap_check(
     """
     ref_mesh, ref_open = _watertight_trimesh(*reference)
     empty = ~contains_points(ref_mesh, gap_points, watertight=ref_open == 0)
-    distance = closest_points_on_mesh(gap_points, *reference)[1] if empty.any() else np.zeros(len(gap_points))
-    judged, near = empty & (distance >= clearance), empty & (distance < clearance)
-    result = {"points": int(judged.sum()), "webbed": 0.0, "passed": True, "clearance_m": float(clearance),
-              "near_points": int(near.sum()), "near_filled": 0}
     if not empty.any():
-        return result
+        return {"points": 0, "webbed": 0.0, "passed": True, "clearance_m": float(clearance), "near_points": 0, "near_filled": 0}
+    distance = closest_points_on_mesh(gap_points, *reference)[1]
+    judged, near = empty & (distance >= clearance), empty & (distance < clearance)
     pred_mesh, pred_open = _watertight_trimesh(pred_vertices, pred_faces)
     filled = contains_points(pred_mesh, gap_points, watertight=pred_open == 0)
-    result["near_filled"] = int((filled & near).sum())
-    if judged.any():
-        result["webbed"] = float(filled[judged].mean())
-        result["passed"] = not bool(filled[judged].any())
-    return result
+    return {
+        "points": int(judged.sum()), "webbed": float(filled[judged].mean()) if judged.any() else 0.0,
+        "passed": not bool(filled[judged].any()), "clearance_m": float(clearance),
+        "near_points": int(near.sum()), "near_filled": int((filled & near).sum()),
+    }
 
 
 def rest_to_canonical_transforms(rest_joints: np.ndarray, parents: np.ndarray, canonical_rotations: np.ndarray) -> np.ndarray:
