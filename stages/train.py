@@ -40,6 +40,7 @@ from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import load_state, save_state
 from igavatar.training.config import TrainConfig, preset, with_overrides
 from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_samples
+from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
 from stages.kernels import build_kernels, resolve_device
 from stages.common import StageClock
@@ -79,6 +80,10 @@ class TrainOptions:
     seed: int = 0
     device: str = "auto"
     resume: bool = False
+    #: None: on for a dataset whose poses are estimated (made from a video), off for given poses.
+    refine_poses: bool | None = None
+    pose_lr: float | None = None
+    pose_prior_weight: float | None = None
 
 
 def resolve_config(options: TrainOptions) -> TrainConfig:
@@ -88,6 +93,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
         sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form, smooth_band=options.smooth_band,
         table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
+        refine_poses=options.refine_poses, pose_lr=options.pose_lr, pose_prior_weight=options.pose_prior_weight,
     )
     weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight),
                                                ("body_inside", options.body_inside_weight))
@@ -111,6 +117,28 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
             raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
     return config
+
+
+def poses_are_estimated(dataset: DatasetArtifact) -> bool:
+    """Whether the dataset's poses were estimated by igavatar (a video's fit), not given."""
+    return dataset.data.get("poses") == "estimated"
+
+
+def _pose_refiner(config: TrainConfig, dataset: DatasetArtifact, data) -> PoseRefiner | None:
+    if not config.refine_poses:
+        return None
+    subject = dataset.subject
+    return PoseRefiner(data.bone_transforms, subject.parents, subject.rest_joints, subject.canonical_rotations,
+                       data.train_indices)
+
+
+def _write_refined_poses(path: Path, trainer: Trainer) -> None:
+    """refined_poses.npz: the training frames' corrected transforms and the corrections."""
+    refiner = trainer.pose_refiner
+    names = np.array([trainer.data.frame_names[int(i)] for i in refiner.frames], dtype=np.str_)
+    np.savez(path, frame_names=names, bone_transforms=refiner.all_bone_transforms().float().cpu().numpy(),
+             rotation_corrections=refiner.rotation.detach().cpu().numpy(),
+             translation_corrections=refiner.translation.detach().cpu().numpy())
 
 
 def config_to_json(config: TrainConfig) -> dict:
@@ -328,6 +356,9 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
         "validation_psnr": {name: psnr for name, (_, psnr) in validation.items()},
         "validation_scale": config.validation_scale,
         **({"body_inside": trainer.body_inside_check} if trainer.body_inside_check is not None else {}),
+        **({"pose_refinement": {"frames": len(trainer.pose_refiner.frames), "file": REFINED_POSES_FILE,
+                                **{k: round(v, 4) for k, v in trainer.pose_refiner.correction_magnitudes().items()}}}
+           if trainer.pose_refiner is not None else {}),
     }
 
 
@@ -338,6 +369,8 @@ def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, sh
     shutil.copyfile(dataset.path / "subject.npz", tmp / "subject.npz")
     save_state(tmp / "shape_init.npz", shape_state)
     shutil.copyfile(log.path, tmp / "training_log.csv")
+    if trainer.pose_refiner is not None:
+        _write_refined_poses(tmp / REFINED_POSES_FILE, trainer)
     for name, (image, _) in validation.items():
         _write_png(tmp / "validation" / f"{name}.png", image)
 
@@ -360,6 +393,8 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     device = resolve_device(options.device)
     build_kernels(device, progress)
     config = resolve_config(options)
+    if options.refine_poses is None:
+        config = dataclasses.replace(config, refine_poses=poses_are_estimated(dataset))
     require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
                    f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
     torch.manual_seed(config.seed)
@@ -379,7 +414,8 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     save_state(work / "shape_init.npz", shape_state)
     # The template is read only when the body-inside term will use it.
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
-    trainer = Trainer(config, data, avatar, device, body_template=body_template)
+    trainer = Trainer(config, data, avatar, device, body_template=body_template,
+                      pose_refiner=_pose_refiner(config, dataset, data))
     check = trainer.body_inside_check
     if check is not None and not check["used"]:
         progress.status(

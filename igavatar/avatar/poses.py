@@ -19,12 +19,14 @@ from pathlib import Path
 
 import torch
 
-from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, read_artifact, read_manifest
+from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, read_artifact, read_manifest, sha256_file
+from igavatar.artifacts.npz import read_npz
 from igavatar.avatar.dataset import read_dataset
 from igavatar.avatar.model import ModelArtifact
 from igavatar.body.motions import SKELETON_KINDS, motion_by_name, walk
 from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.errors import ArtifactError, InputError
+from igavatar.training.pose_refine import REFINED_POSES_FILE
 
 #: Frames per second of procedural motions, and of pose files that do not say.
 DEFAULT_FPS = 30.0
@@ -114,6 +116,13 @@ def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps:
     chosen = select(all_frames.n_frames, str(path / "frames.npz"))
     frames = all_frames.select(chosen)
     bone_transforms = torch.from_numpy(frames.bone_transforms).float()
+    posed_joints = torch.from_numpy(frames.posed_joints).float()
+    refined = _refined_frames(model, path, list(frames.names))
+    for slot, transforms in refined.items():
+        # The model's own training frames: the poses it refined while training (train --refine-poses).
+        bone_transforms[slot] = transforms
+        canonical_joints = torch.from_numpy(subject.canonical_joints).float()
+        posed_joints[slot] = (transforms[:, :3, :3] @ canonical_joints[..., None])[..., 0] + transforms[:, :3, 3]
     rotations, translation = local_pose_from_bone_transforms(
         bone_transforms.double(), subject.parents, torch.from_numpy(subject.rest_joints).double(),
         torch.from_numpy(subject.canonical_rotations).double(),
@@ -122,11 +131,27 @@ def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps:
         name=path.name, source=str(path), frame_names=list(frames.names), local_rotations=rotations.float(),
         root_translation=translation.float(), bone_transforms=bone_transforms,
         pose_condition=torch.from_numpy(frames.pose_condition).float(),
-        posed_joints=torch.from_numpy(frames.posed_joints).float(), fps=float(fps or DEFAULT_FPS),
+        posed_joints=posed_joints, fps=float(fps or DEFAULT_FPS),
         description={"source": str(path), "format": "dataset", "skeleton": model.body_model,
-                     "source_frames": all_frames.n_frames, "frame_indices": chosen},
+                     "source_frames": all_frames.n_frames, "frame_indices": chosen,
+                     **({"refined_frames": len(refined)} if refined else {})},
         inputs=(InputRecord(path, "dataset"),),
     )
+
+
+def _refined_frames(model: ModelArtifact, dataset_path: Path, names: list[str]) -> dict[int, torch.Tensor]:
+    """Slot in `names` -> (J, 4, 4) refined transforms, for the frames the model refined, when
+    `dataset_path` is the dataset the model was trained on (same manifest hash); else empty."""
+    refined_file = model.path / REFINED_POSES_FILE
+    if not refined_file.is_file():
+        return {}
+    trained_on = [record.get("sha256") for record in model.manifest["inputs"] if record.get("artifact") == "dataset"]
+    if sha256_file(dataset_path / MANIFEST_NAME) not in trained_on:
+        return {}
+    refined = read_npz(refined_file, ("frame_names", "bone_transforms"), "refined poses", "re-run `igavatar train`")
+    by_name = {str(name): i for i, name in enumerate(refined["frame_names"])}
+    transforms = torch.from_numpy(refined["bone_transforms"]).float()
+    return {slot: transforms[by_name[name]] for slot, name in enumerate(names) if name in by_name}
 
 
 def file_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps: float | None,

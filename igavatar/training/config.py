@@ -135,6 +135,19 @@ class TrainConfig:
     """Non-rigid offsets switch on after this fraction of training (official: after epoch 1 of 30)."""
     nonrigid_window_fraction: float = 5 / 30
     """Their frequency window then opens over this fraction (official: epochs 1..6)."""
+    refine_poses: bool = False
+    """Optimise per-frame corrections of the training frames' joint rotations and root translation
+    with the avatar (igavatar.training.pose_refine); for estimated poses (a video's fit)."""
+    pose_lr: float = 0.005
+    """Learning rate of the pose corrections (radians, meters); each frame's are stepped only on
+    the steps that draw it (SparseAdam), about steps / training frames times."""
+    pose_prior_weight: float = 0.01
+    """Weight of the squared corrections (radians^2, and (meters / pose_translation_scale_m)^2)
+    that keeps the refined poses near the estimate."""
+    pose_translation_scale_m: float = 0.02
+    """A root translation correction of this many meters costs as much as one radian of rotation."""
+    pose_refine_start_fraction: float = 0.1
+    """Pose corrections are stepped from this fraction of training on, once the shape has formed."""
     shape_init_steps: int = 1000
     """Steps fitting the SDF to the template's SDF before photometric training (0 = sphere)."""
     shape_init_points: int = 16384
@@ -243,6 +256,10 @@ def with_overrides(config: TrainConfig, **overrides) -> TrainConfig:
         raise InputError(f"--smooth-band {overrides['smooth_band']}: must be > 0 (meters)")
     if "table_lr_factor" in overrides and not overrides["table_lr_factor"] > 0:
         raise InputError(f"--table-lr-factor {overrides['table_lr_factor']}: must be > 0")
+    if "pose_lr" in overrides and not overrides["pose_lr"] > 0:
+        raise InputError(f"--pose-lr {overrides['pose_lr']}: must be > 0")
+    if "pose_prior_weight" in overrides and overrides["pose_prior_weight"] < 0:
+        raise InputError(f"--pose-prior-weight {overrides['pose_prior_weight']}: must be >= 0")
     for name in ("steps", "rays_per_step", "samples_per_ray"):
         if name in overrides and overrides[name] < 1:
             raise InputError(f"--{name.replace('_', '-')} {overrides[name]}: must be >= 1")

@@ -14,6 +14,7 @@ resumed run continues exactly.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections import OrderedDict
@@ -44,6 +45,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
+from igavatar.training.pose_refine import PoseRefiner
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
     CanonicalHull, canonical_visual_hull, free_space_loss, training_skin, voting_views,
@@ -69,7 +71,7 @@ class Trainer:
 
     def __init__(
         self, config: TrainConfig, data: TrainingData, avatar: Avatar, device: torch.device | str = "cpu",
-        body_template: tuple[np.ndarray, np.ndarray] | None = None,
+        body_template: tuple[np.ndarray, np.ndarray] | None = None, pose_refiner: PoseRefiner | None = None,
     ):
         self.config = config
         self.data = data
@@ -92,6 +94,11 @@ class Trainer:
             self.table_optimizer = SparseAdam(groups[:1], betas=(0.9, 0.99), eps=config.adam_eps)
             groups = groups[1:]
         self.optimizer = adam(groups, betas=(0.9, 0.99), eps=config.adam_eps)
+        # Each frame's corrections get a gradient only on the steps that draw that frame: the
+        # sparse rule leaves the others where they are instead of drifting on momentum.
+        self.pose_refiner = None if pose_refiner is None else pose_refiner.to(self.device)
+        self.pose_optimizer = None if pose_refiner is None else SparseAdam(
+            self.pose_refiner.parameters(), lr=config.pose_lr, betas=(0.9, 0.99), eps=1e-8)
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
         self.hull: CanonicalHull | None = None
         self._hull_cells_cache: torch.Tensor | None = None
@@ -148,8 +155,17 @@ class Trainer:
         table = self.table_optimizer.param_groups if self.table_optimizer is not None else []
         return table + self.optimizer.param_groups
 
+    def frame_transforms(self, index: int) -> torch.Tensor:
+        """(J, 4, 4) bone transforms of dataset frame `index`: refined when the frame is (with grad)."""
+        if self.pose_refiner is not None and self.pose_refiner.refines(index):
+            return self.pose_refiner.bone_transforms(index)
+        return self.data.bone_transforms[index].to(self.device)
+
     def prepared_frame(self, index: int) -> PreparedFrame:
-        """The deformer's per-frame precomputation, cached (the skinning grid is fixed)."""
+        """The deformer's per-frame precomputation, cached (the skinning grid is fixed) unless the
+        frame's pose is being refined (then made anew, differentiable in the corrections)."""
+        if self.pose_refiner is not None and self.pose_refiner.refines(index):
+            return self.avatar.deformer.prepare(self.frame_transforms(index))
         if index in self._prepared:
             self._prepared.move_to_end(index)
             return self._prepared[index]
@@ -263,6 +279,9 @@ class Trainer:
 
         # Map every kept posed sample to canonical space once; samples without a root are empty.
         canonical_samples, x_rigid = posed.canonical_samples(samples)
+        refining = self._refining(index)
+        if refining:
+            canonical_samples, x_rigid = self._with_pose_gradient(posed.frame, samples, canonical_samples, x_rigid)
 
         noise_std = config.sigma_noise_std if self.step < config.sigma_noise_steps else 0.0
         field_generator = torch.Generator(device=device).manual_seed(self.step + 1)
@@ -278,10 +297,14 @@ class Trainer:
         if self.body_inside is not None:
             terms["body_inside"] = self._body_inside_term()
         loss = total_loss(terms, config.loss_weights)
+        if refining:
+            loss = loss + self.pose_refiner.regularization(index, config.pose_prior_weight, config.pose_translation_scale_m)
 
         self.optimizer.zero_grad(set_to_none=True)
         if self.table_optimizer is not None:
             self.table_optimizer.zero_grad(set_to_none=True)
+        if self.pose_optimizer is not None:
+            self.pose_optimizer.zero_grad(set_to_none=True)
         # A step whose rays hit no valid sample (all patches in empty space) has a constant loss:
         # nothing to learn from it, so it is counted but not stepped.
         if loss.requires_grad:
@@ -289,6 +312,8 @@ class Trainer:
             self.optimizer.step()
             if self.table_optimizer is not None:
                 self.table_optimizer.step()
+            if refining:
+                self.pose_optimizer.step()
         self.step += 1
 
         num_samples = int(canonical_samples.valid.sum())
@@ -302,7 +327,25 @@ class Trainer:
             beta=float(self.avatar.density.beta.detach()), samples=num_samples, step_seconds=elapsed,
             occupied=self.canonical_grid.occupied_fraction, lr=self.param_groups()[0]["lr"],
         )
+        if self.pose_refiner is not None:
+            logs.update(self.pose_refiner.correction_magnitudes())
         return logs
+
+    def _with_pose_gradient(self, frame: PreparedFrame, samples: RaySamples, canonical: RaySamples,
+                            x_rigid: torch.Tensor) -> tuple[RaySamples, torch.Tensor]:
+        """The canonical samples with their implicit-function gradients w.r.t. the frame's bone
+        transforms (deformer.attach_implicit_gradient), so the rendering loss reaches the pose
+        corrections: root finding itself is not differentiable."""
+        x_posed = samples.positions[canonical.valid]
+        x_attached = self.avatar.deformer.attach_implicit_gradient(x_rigid, x_posed, frame).to(x_rigid.dtype)
+        positions = canonical.positions.clone()
+        positions[canonical.valid] = x_attached
+        return dataclasses.replace(canonical, positions=positions), x_attached
+
+    def _refining(self, index: int) -> bool:
+        """Whether this step updates frame `index`'s pose corrections."""
+        return (self.pose_refiner is not None and self.pose_refiner.refines(index)
+                and self.step >= int(self.config.pose_refine_start_fraction * self.total_steps))
 
     # ------------------------------------------------------------------ validation
     def render_frame(self, index: int, scale: float, num_samples: int) -> ImageRender:
@@ -317,7 +360,7 @@ class Trainer:
         K[1, 2] += 0.5 * h / height - 0.5
         self.avatar.eval()
         return render_avatar_view(
-            self.avatar, self.canonical_grid, data.bone_transforms[index].to(self.device),
+            self.avatar, self.canonical_grid, self.frame_transforms(index).detach(),
             data.pose_condition[index].to(self.device), K.to(self.device), data.w2c[index].to(self.device),
             h, w, data.posed_boxes[index].to(self.device), num_samples=num_samples,
             occupancy_resolution=self.config.occupancy_resolution,
@@ -336,6 +379,8 @@ class Trainer:
             "seconds": self.seconds,
             "samples_seen": self.samples_seen,
             "rays_seen": self.rays_seen,
+            "pose_refiner": None if self.pose_refiner is None else self.pose_refiner.state_dict(),
+            "pose_optimizer": None if self.pose_optimizer is None else self.pose_optimizer.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -354,4 +399,7 @@ class Trainer:
         self.seconds = float(state["seconds"])
         self.samples_seen = int(state["samples_seen"])
         self.rays_seen = int(state["rays_seen"])
+        if self.pose_refiner is not None:
+            self.pose_refiner.load_state_dict(state["pose_refiner"])
+            self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self._prepared.clear()

@@ -1,0 +1,110 @@
+"""Per-frame pose corrections optimised with the avatar (as InstantAvatar and Vid2Avatar do).
+
+    refiner = PoseRefiner(data.bone_transforms, parents, rest_joints, canonical_rotations, data.train_indices)
+    frame_transforms = refiner.bone_transforms(index)       # (J, 4, 4), differentiable
+    loss = loss + refiner.regularization(index, weight)     # pulls the corrections towards 0
+
+A dataset stores each frame's bone transforms B_j = G_j(pose) G_j(canonical)^-1 (canonical ->
+posed world). From them and the skeleton the frame's local transforms L_j = G_parent^-1 G_j are
+recovered once; a correction rotates each joint's local frame by R(dr_j) (about the joint, so its
+subtree turns with it) and moves the root by dt:
+
+    G'_root = T(dt) L_root R(dr_root),   G'_j = G'_parent L_j R(dr_j),   B'_j = G'_j G_j(canonical)^-1.
+
+Only training frames get corrections; every other frame keeps its stored transforms exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from igavatar.body.rotations import axis_angle_to_matrix, invert_rigid
+from igavatar.body.skeleton import forward_kinematics
+
+#: The model artifact's file of refined training poses (written by `train` when it refines).
+REFINED_POSES_FILE = "refined_poses.npz"
+
+
+class PoseRefiner(torch.nn.Module):
+    """Rotation corrections (T, J, 3) and root translation corrections (T, 3) for T training frames.
+
+    Args:
+        bone_transforms: (N, J, 4, 4) the dataset's canonical -> posed world transforms.
+        parents: (J,) int, -1 at the root (index 0), parents before children.
+        rest_joints: (J, 3) rest joints; canonical_rotations: (J, 3, 3) local rotations of the
+            canonical pose (the dataset's subject arrays).
+        frames: (T,) dataset indices of the frames that get corrections.
+    """
+
+    def __init__(self, bone_transforms: torch.Tensor, parents: np.ndarray, rest_joints: np.ndarray,
+                 canonical_rotations: np.ndarray, frames: torch.Tensor) -> None:
+        super().__init__()
+        parents = np.asarray(parents, dtype=np.int64)
+        canonical = forward_kinematics(torch.as_tensor(canonical_rotations, dtype=torch.float64),
+                                       torch.as_tensor(rest_joints, dtype=torch.float64), parents)
+        base = bone_transforms[frames].to(torch.float64)
+        global_posed = base @ canonical  # (T, J, 4, 4)
+        parent_global = global_posed[:, np.maximum(parents, 0)]
+        local = invert_rigid(parent_global) @ global_posed
+        local[:, 0] = global_posed[:, 0]
+        self.parents = tuple(int(p) for p in parents)
+        self.register_buffer("local", local)
+        self.register_buffer("canonical_inverse", invert_rigid(canonical))
+        self.register_buffer("frames", frames.clone().long())
+        slots = torch.full((int(bone_transforms.shape[0]),), -1, dtype=torch.long)
+        slots[frames] = torch.arange(len(frames))
+        self.register_buffer("slots", slots)
+        self.rotation = torch.nn.Parameter(torch.zeros(len(frames), len(parents), 3, dtype=torch.float32))
+        self.translation = torch.nn.Parameter(torch.zeros(len(frames), 3, dtype=torch.float32))
+        self._levels = _levels(self.parents)
+
+    def refines(self, index: int) -> bool:
+        return 0 <= index < len(self.slots) and int(self.slots[index]) >= 0
+
+    def bone_transforms(self, index: int) -> torch.Tensor:
+        """(J, 4, 4) float32 corrected canonical -> posed transforms of dataset frame `index`."""
+        slot = int(self.slots[index])
+        return self._corrected(self.local[slot], self.rotation[slot], self.translation[slot]).float()
+
+    def all_bone_transforms(self) -> torch.Tensor:
+        """(T, J, 4, 4) float64 corrected transforms of every refined frame, in `frames` order (no grad)."""
+        with torch.no_grad():
+            return torch.stack([self._corrected(self.local[s], self.rotation[s], self.translation[s])
+                                for s in range(len(self.frames))])
+
+    def _corrected(self, local: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
+        correction = torch.zeros_like(local)
+        correction[:, :3, :3] = axis_angle_to_matrix(rotation.to(local.dtype))
+        correction[:, 3, 3] = 1.0
+        local = local @ correction
+        shift = torch.zeros_like(local[0])
+        shift[:3, 3] = translation.to(local.dtype)
+        local = torch.cat((local[:1] + shift[None], local[1:]))
+        global_transforms: list[torch.Tensor | None] = [None] * len(self.parents)
+        global_transforms[0] = local[0]
+        for joints in self._levels:
+            for joint in joints:
+                global_transforms[joint] = global_transforms[self.parents[joint]] @ local[joint]
+        return torch.stack(global_transforms) @ self.canonical_inverse
+
+    def regularization(self, index: int, rotation_weight: float, translation_scale_m: float) -> torch.Tensor:
+        """Squared corrections of frame `index`: rotation_weight x (sum |dr_j|^2 + |dt / scale|^2)."""
+        slot = int(self.slots[index])
+        return rotation_weight * (self.rotation[slot].square().sum()
+                                  + (self.translation[slot] / translation_scale_m).square().sum())
+
+    def correction_magnitudes(self) -> dict[str, float]:
+        """Mean joint rotation correction (degrees) and root translation correction (mm), for logs."""
+        with torch.no_grad():
+            angle = self.rotation.norm(dim=-1)
+            return {"pose_rot_deg": float(np.degrees(float(angle.mean()))),
+                    "pose_root_mm": float(1000 * self.translation.norm(dim=-1).mean())}
+
+
+def _levels(parents: tuple[int, ...]) -> list[list[int]]:
+    """Joints by depth below the root (depth 1 first), so parents are done before children."""
+    depth = [0] * len(parents)
+    for joint in range(1, len(parents)):
+        depth[joint] = depth[parents[joint]] + 1
+    return [[j for j in range(1, len(parents)) if depth[j] == d] for d in range(1, max(depth, default=0) + 1)]
