@@ -168,7 +168,8 @@ def synth(
 @app.command()
 @user_errors
 def preprocess(
-    capture: Annotated[Optional[Path], typer.Option(help="Capture directory \\[default: RUN_DIR/capture].")] = None,
+    capture: Annotated[Optional[Path], typer.Option(
+        help="Capture directory to read, or with --video to write \\[default: RUN_DIR/capture].")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Dataset directory to write \\[default: RUN_DIR/dataset].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     input_format: Annotated[str, typer.Option("--format", help="Input layout: auto (detect), capture-v1, peoplesnapshot, xhumans or humannerf.")] = "auto",
@@ -202,12 +203,33 @@ def preprocess(
              "(proportions from the bones, average girth) and uses it as the template, with its skinning weights; "
              "none keeps the masks' visual hull and bone-distance weights. Body-model captures ignore it.")] = "anny",
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
+    video: Annotated[Optional[Path], typer.Option(
+        help="A clip of one person filmed by a still camera (mp4, mov, webm, avi, mkv, gif, or a folder of frames): "
+             "igavatar finds the person (MediaPipe, offline), fits the Anny body to the whole clip and writes the "
+             "capture at --capture first, then the dataset.", rich_help_panel="Video")] = None,
+    every: Annotated[int, typer.Option(help="Video: keep every N-th frame.", min=1, rich_help_panel="Video")] = 1,
+    max_frames: Annotated[int, typer.Option(
+        help="Video: keep at most this many frames, evenly spaced (after dropping blurred and duplicate ones).",
+        min=9, rich_help_panel="Video")] = 300,
+    test_every: Annotated[int, typer.Option(
+        help="Video: hold out every K-th kept frame for `eval` (0: none).", min=0, rich_help_panel="Video")] = 8,
+    height: Annotated[float, typer.Option(
+        help="Video: the person's height in meters. It sets the avatar's size in meters (one view cannot tell size "
+             "from distance); the images and proportions do not depend on it.", rich_help_panel="Video")] = 1.70,
+    focal: Annotated[Optional[float], typer.Option(
+        help="Video: focal length in pixels of the frames as read (longer side at most 1024 px) "
+             "\\[default: from --fov].", rich_help_panel="Video")] = None,
+    fov: Annotated[Optional[float], typer.Option(
+        help="Video: field of view in degrees across the longer side \\[default: 50, a typical phone in between "
+             "its wide and tele lenses].", rich_help_panel="Video")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
-    """Turn a capture (images, masks, cameras, body poses) into a dataset artifact that `train` reads."""
+    """Turn a capture (images, masks, cameras, body poses), or a video of one person (--video), into a dataset
+    artifact that `train` reads."""
     from igavatar_cli.progress import progress_sink
     from stages.preprocess import PreprocessOptions, parse_grid_resolution, run_preprocess
+    from stages.video import VideoOptions
 
     layout = RunLayout(run_dir)
     options = PreprocessOptions(
@@ -215,6 +237,9 @@ def preprocess(
         max_size=max_size, grid_resolution=parse_grid_resolution(grid_resolution),
         weight_smoothing=weight_smoothing, weight_spread=weight_spread, anny_cache=anny_cache,
         smpl_model=smpl_model, shape_prior=shape_prior, body_fit=body_fit, force=force,
+        video=None if video is None else VideoOptions(
+            video=video, out=capture or layout.capture, every=every, max_frames=max_frames, test_every=test_every,
+            height_m=height, focal_px=focal, fov_deg=fov, anny_cache=anny_cache, force=force),
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_preprocess(options, progress=progress)
@@ -257,6 +282,15 @@ def train(
     seed: Annotated[int, typer.Option(help="Random seed (runs are deterministic on CPU).")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint of an interrupted run.")] = False,
+    refine_poses: Annotated[Optional[bool], typer.Option(
+        "--refine-poses/--no-refine-poses",
+        help="Optimise per-frame corrections of the training poses with the avatar, kept near the estimate; saved "
+             "in the model (refined_poses.npz) and used by export, animate and eval for those frames "
+             "\\[default: on for poses igavatar estimated from a video, off for given poses].")] = None,
+    pose_lr: Annotated[Optional[float], typer.Option(
+        help="Learning rate of the pose corrections \\[default: 0.005].")] = None,
+    pose_prior_weight: Annotated[Optional[float], typer.Option(
+        help="Weight that keeps the refined poses near the estimate \\[default: 0.01].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -270,7 +304,8 @@ def train(
         samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form, smooth_band=smooth_band,
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
-        seed=seed, device=device, resume=resume,
+        seed=seed, device=device, resume=resume, refine_poses=refine_poses, pose_lr=pose_lr,
+        pose_prior_weight=pose_prior_weight,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_train(options, progress=progress)

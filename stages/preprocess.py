@@ -62,6 +62,7 @@ from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box, samp
 from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
+from stages.video import VideoOptions, run_video_capture
 
 #: Margin (meters) around the template for clothing, hair and loose garments.
 BOX_MARGIN_M = 0.12
@@ -121,6 +122,8 @@ class PreprocessOptions:
     shape_prior: str = "auto"
     body_fit: str = "anny"
     force: bool = False
+    #: A clip to make the capture from first (written at `capture`), or None to read `capture`.
+    video: VideoOptions | None = None
 
     def config(self) -> dict:
         """The options that change the dataset (recorded in the manifest, compared to skip)."""
@@ -472,6 +475,8 @@ def _dataset_data(capture: CaptureV1, input_format: str, subject: PosedSubject, 
         "has_scans": bool(capture.scans),
         # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
         "masks": "given" if capture.has_masks else "estimated (grabcut)",
+        # A video's poses are igavatar's own estimate: `train` refines them by default.
+        "poses": "estimated" if capture.input_format == "video" else "given",
         "subject": json.loads(json.dumps(subject.description)),
     }
 
@@ -483,6 +488,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     BodyModelError/NotAvailableError for problems a user can fix.
     """
     clock = StageClock()
+    video_summary = run_video_capture(options.video, progress) if options.video is not None else None
     input_format = detect_format(Path(options.capture), options.input_format)
     capture = read_layout(Path(options.capture), input_format)
     config = _dataset_config(options, capture, input_format)
@@ -490,7 +496,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     out = Path(options.out)
     output_inputs = [capture.root, options.smpl_model]
     if not options.force and unchanged(out, "dataset", config, inputs):  # read-only, so before the target check
-        return skipped("dataset", out)
+        return {**skipped("dataset", out), **({"video": video_summary} if video_summary else {})}
     check_output_target(out, "dataset", output_inputs)
     with clock("body_model_s"):
         subject = subject_from_capture(capture, options.anny_cache, progress.status, options.smpl_model)
@@ -525,5 +531,5 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
         "dataset": str(out), "frames": len(capture.frames), "train": len(capture.splits["train"]),
         "test": len(capture.splits.get("test", [])), "image_size": f"{size_hw[1]}x{size_hw[0]}",
         "joints": subject.skeleton.num_joints, "contact_sheet": str(out / "contact_sheet.png"),
-        "seconds": round(clock.elapsed(), 2),
+        "seconds": round(clock.elapsed(), 2), **({"video": video_summary} if video_summary else {}),
     }

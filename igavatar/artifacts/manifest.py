@@ -38,7 +38,7 @@ SCHEMA_VERSIONS: dict[str, str] = {
 
 #: The command that makes each kind, named in errors so a user knows what to (re)run.
 PRODUCED_BY: dict[str, str] = {
-    "capture": "igavatar synth",
+    "capture": "igavatar synth or igavatar preprocess --video",
     "dataset": "igavatar preprocess",
     "model": "igavatar train",
     "mesh": "igavatar export",

@@ -154,7 +154,7 @@ def read_capture_v1(root: Path) -> CaptureV1:
     """Read and validate a capture v1 directory; raise InputError naming the file/key on any problem."""
     root = Path(root)
     if not root.exists():
-        raise InputError(f"{root}: no such capture directory (make one with `igavatar synth` or pass --capture)")
+        raise InputError(f"{root}: no such capture directory (make one with `igavatar synth` or `igavatar preprocess --video CLIP`, or pass --capture)")
     if not root.is_dir():
         raise InputError(f"{root}: is a file, expected a capture directory holding {CAPTURE_FILE}")
     meta_path = root / CAPTURE_FILE

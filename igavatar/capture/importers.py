@@ -66,7 +66,7 @@ def detect_layout(root: Path, requested: str = "auto") -> str:
             raise InputError(f"--format {requested!r}: unknown; expected auto or one of {', '.join(importers)}")
         return requested
     if not root.exists():
-        raise InputError(f"{root}: no such capture directory (make one with `igavatar synth` or pass --capture)")
+        raise InputError(f"{root}: no such capture directory (make one with `igavatar synth` or `igavatar preprocess --video CLIP`, or pass --capture)")
     if not root.is_dir():
         raise InputError(f"{root}: is a file, expected a capture directory")
     for importer in importers.values():
