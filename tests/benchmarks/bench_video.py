@@ -3,6 +3,7 @@
     python tests/benchmarks/bench_video.py --run-dir RUN                      # 3 subjects, 800 steps
     python tests/benchmarks/bench_video.py --run-dir RUN --subjects stripes-shirt --steps 300
     python tests/benchmarks/bench_video.py --run-dir RUN --write-results      # also record it in results/
+    python tests/benchmarks/bench_video.py --run-dir RUN --noise 5,10 --reuse --tag pose-noise --write-results
 
 For every subject (bench_quality's: stripes-shirt, checker-dress in a dress, plain-heavy) it
 synthesises a 360-degree turn, writes it to clip.mp4 (H.264, as a phone would) and runs:
@@ -12,6 +13,10 @@ synthesises a 360-degree turn, writes it to clip.mp4 (H.264, as a phone would) a
 - `video-default`: `preprocess --video clip.mp4` with nothing else given.
 Each is trained (`--preset cpu --steps S`) and evaluated on the held-out frames: image metrics
 (PSNR/SSIM in the subject's box and the full image) and posed geometry against the scans.
+
+With --noise D1,D2 it runs the pose-noise study instead: the `truth` captures of an earlier run
+with noise on the training frames' poses (D degrees a joint about a random axis, 2 cm on the
+root), trained without and with `--refine-poses`, against the exact poses.
 
 Alignment for geometry: a video capture lives in its own world (camera at the origin, scale from
 --height). One similarity transform per clip (Umeyama on the 14 main joints of every frame, fitted
@@ -156,13 +161,13 @@ def aligned_scans(truth: Path, video: Path, out: Path) -> dict:
     return {"scale": scale, "pa_mpjpe_mm": pa_mpjpe_mm(true_joints, fitted)}
 
 
-def train_and_eval(run: Path, gt: Path, args: argparse.Namespace) -> dict:
+def train_and_eval(run: Path, gt: Path, args: argparse.Namespace, extra: list[str] | tuple = ()) -> dict:
     model, report = run / "model", run / "report"
     started = time.perf_counter()
     if args.reuse and (report / "metrics.json").is_file():
         return _report_row(report, None)
     igavatar("train", "--run-dir", str(run), "--preset", "cpu", "--steps", str(args.steps), "--seed", str(args.seed),
-             "--device", "cpu", *args.train_args)
+             "--device", "cpu", *args.train_args, *extra)
     train_s = time.perf_counter() - started
     igavatar("eval", "--run-dir", str(run), "--gt", str(gt), "--mesh-resolution", "256", "--image-frames", "0",
              "--image-scale", "0.5", "--iou-open-meshes", "--seed", str(args.seed), "--device", "cpu")
@@ -226,6 +231,75 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
     return row
 
 
+def noisy_capture(truth: Path, out: Path, degrees: float, root_m: float, seed: int) -> None:
+    """`truth` with every training frame's fitted bones (and root) turned by `degrees` about a
+    random axis and its root moved `root_m` in a random direction; test frames keep their poses."""
+    import torch
+
+    from igavatar.body.anny_body import AnnyBody, load_anny
+    from igavatar.body.rotations import axis_angle_to_matrix
+    from igavatar.capture.video_fit import FREE_BONES
+
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(truth, out)
+    poses = dict(np.load(truth / "poses.npz"))
+    meta = json.loads((truth / "capture.json").read_text())
+    labels = [str(v) for v in poses["phenotype_labels"]]
+    body = AnnyBody(load_anny(), dict(zip(labels, poses["phenotype_values"].tolist())))
+    local, translation = body.local_rotations_from_pose_parameters(torch.as_tensor(poses["pose_parameters"]))
+    rng = np.random.default_rng(seed)
+    joints = [0] + [body.skeleton.index(b) for b in FREE_BONES]
+    train = [i for i, name in enumerate(meta["frames"]) if name in set(meta["splits"]["train"])]
+    for i in train:
+        axes = rng.normal(size=(len(joints), 3))
+        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+        turn = axis_angle_to_matrix(torch.as_tensor(axes * np.radians(degrees), dtype=local.dtype))
+        local[i, joints] = local[i, joints] @ turn
+        direction = rng.normal(size=3)
+        translation[i] += torch.as_tensor(root_m * direction / np.linalg.norm(direction), dtype=translation.dtype)
+    poses["pose_parameters"] = body.pose_parameters_from_local_rotations(local, translation).numpy()
+    np.savez(out / "poses.npz", **poses)
+
+
+def run_noise(subject: str, args: argparse.Namespace) -> dict:
+    """Exact poses against poses with noise on the training frames, trained with and without refinement."""
+    base = args.run_dir / subject
+    truth = base / "truth" / "capture"
+    row: dict = {"subject": subject, "truth": train_and_eval(base / "truth", truth / "scans", args)}
+    for degrees in args.noise:
+        capture = base / f"noise{degrees:g}" / "capture"
+        noisy_capture(truth, capture, degrees, 0.02, seed=args.seed + 100)
+        for refine in (False, True):
+            name = f"noise{degrees:g}" + ("-refine" if refine else "")
+            run = base / name
+            if not (args.reuse and (run / "report" / "metrics.json").is_file()):
+                igavatar("preprocess", "--capture", str(capture), "--run-dir", str(run), "--force")
+            flag = "--refine-poses" if refine else "--no-refine-poses"
+            row[name] = train_and_eval(run, truth / "scans", args, extra=[flag])
+            print(json.dumps({subject: {name: row[name]}}), flush=True)
+    return row
+
+
+def noise_markdown(rows: list[dict], args: argparse.Namespace, command: str, made: str) -> str:
+    lines = [f"# Pose noise on the training frames, trained with and without pose refinement", "",
+             f"Commit `{made}`; command: `{command}`. CPU (2 cores), `--preset cpu --steps {args.steps}`, seed {args.seed}.",
+             "Noise: each training frame's root and 15 fitted bones turned by the angle about a random axis, the root moved "
+             "2 cm; held-out frames keep their exact poses. Geometry on the held-out frames against the scans.", "",
+             "| subject | variant | CD-L1 mm | vs exact | IoU | NC surf | PSNR box | SSIM box |", "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        exact = row["truth"].get("chamfer_l1_surface_mm")
+        for name, v in row.items():
+            if name == "subject":
+                continue
+            cd = v.get("chamfer_l1_surface_mm")
+            ratio = "-" if cd is None or not exact else f"{100 * (cd / exact - 1):+.0f} %"
+            lines.append(f"| {row['subject']} | {name} | {number(cd)} | {ratio} | {number(v.get('volumetric_iou'), 3)} | "
+                         f"{number(v.get('normal_consistency_surface'), 3)} | {number(v.get('psnr_mask_bbox_db'))} | "
+                         f"{number(v.get('ssim_mask_bbox'), 3)} |")
+    return "\n".join(lines) + "\n"
+
+
 def number(value, digits: int = 2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
@@ -259,11 +333,17 @@ def main() -> None:
     parser.add_argument("--tag", default="video-path")
     parser.add_argument("--write-results", action="store_true")
     parser.add_argument("--reuse", action="store_true", help="keep variants already trained and evaluated in RUN")
+    parser.add_argument("--noise", type=lambda text: [float(v) for v in text.split(",")], default=[],
+                        help="degrees, e.g. 5,10: the pose-noise study on the truth captures of a previous run instead")
     args = parser.parse_args()
     made, command = commit(), "python " + " ".join([str(Path(sys.argv[0]).relative_to(ROOT)
                                                        if Path(sys.argv[0]).is_absolute() else sys.argv[0]), *sys.argv[1:]])
-    rows = [run_subject(subject, args) for subject in args.subjects.split(",")]
-    text = markdown(rows, args, command, made)
+    if args.noise:
+        rows = [run_noise(subject, args) for subject in args.subjects.split(",")]
+        text = noise_markdown(rows, args, command, made)
+    else:
+        rows = [run_subject(subject, args) for subject in args.subjects.split(",")]
+        text = markdown(rows, args, command, made)
     print(text)
     if args.write_results:
         (RESULTS / f"{args.tag}.json").write_text(json.dumps({"commit": made, "command": command, "rows": rows}, indent=2))
