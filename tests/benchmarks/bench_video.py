@@ -174,13 +174,25 @@ def train_and_eval(run: Path, gt: Path, args: argparse.Namespace, extra: list[st
     return _report_row(report, train_s)
 
 
-def _report_row(report: Path, train_s: float | None) -> dict:
-    metrics = json.loads((report / "metrics.json").read_text())
+def frame_values(metrics: dict) -> dict[str, list[float]]:
+    """metrics.json's per-frame values, by metric (frames without a value left out)."""
     values: dict[str, list[float]] = {}
     for record in metrics["frames"]:
         for key, value in record["values"].items():
             if value is not None:
                 values.setdefault(key, []).append(value)
+    return values
+
+
+def write_results(tag: str, made: str, command: str, rows, text: str) -> None:
+    """results/<tag>.json (commit, command, rows) and results/<tag>.md (the table)."""
+    (RESULTS / f"{tag}.json").write_text(json.dumps({"commit": made, "command": command, "rows": rows}, indent=2))
+    (RESULTS / f"{tag}.md").write_text(text)
+
+
+def _report_row(report: Path, train_s: float | None) -> dict:
+    metrics = json.loads((report / "metrics.json").read_text())
+    values = frame_values(metrics)
     canonical = metrics.get("canonical") or {}
     limbs = canonical.get("limb_check")
     return {"train_s": train_s, "limbs_ok": None if limbs is None else limbs["passed"],
@@ -346,8 +358,7 @@ def main() -> None:
         text = markdown(rows, args, command, made)
     print(text)
     if args.write_results:
-        (RESULTS / f"{args.tag}.json").write_text(json.dumps({"commit": made, "command": command, "rows": rows}, indent=2))
-        (RESULTS / f"{args.tag}.md").write_text(text)
+        write_results(args.tag, made, command, rows, text)
 
 
 if __name__ == "__main__":

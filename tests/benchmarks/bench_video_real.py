@@ -26,7 +26,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
-from bench_video import IMAGE_KEYS, RESULTS, commit, igavatar, number  # noqa: E402
+from bench_video import IMAGE_KEYS, commit, frame_values, igavatar, number, write_results  # noqa: E402
 
 
 def dataset_pose_capture(humannerf: Path, video_capture: Path, out: Path) -> None:
@@ -70,11 +70,7 @@ def train_and_score(run: Path, args: argparse.Namespace, extra: list[str]) -> di
         igavatar("eval", "--run-dir", str(run), "--no-geometry", "--image-frames", "0", "--image-scale", "0.5",
                  "--seed", str(args.seed), "--device", "cpu")
     metrics = json.loads((run / "report" / "metrics.json").read_text())
-    values: dict[str, list[float]] = {}
-    for record in metrics["frames"]:
-        for key, value in record["values"].items():
-            if value is not None:
-                values.setdefault(key, []).append(value)
+    values = frame_values(metrics)
     model = json.loads((run / "model" / "manifest.json").read_text())
     return {"wall_s": time.perf_counter() - started, "frames_scored": len(metrics["frames"]),
             "pose_refinement": model["data"].get("pose_refinement"),
@@ -127,8 +123,7 @@ def main() -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if args.write_results:
-        (RESULTS / f"video-real-{args.name}.json").write_text(json.dumps({"commit": made, "command": command, "rows": rows}, indent=2))
-        (RESULTS / f"video-real-{args.name}.md").write_text(text)
+        write_results(f"video-real-{args.name}", made, command, rows, text)
 
 
 if __name__ == "__main__":
