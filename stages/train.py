@@ -80,7 +80,7 @@ class TrainOptions:
     seed: int = 0
     device: str = "auto"
     resume: bool = False
-    #: None: on for a dataset whose poses are estimated (made from a video), off for given poses.
+    #: None: the preset's (off: measured, it does not yet pay for its time; DESIGN.md "Video in").
     refine_poses: bool | None = None
     pose_lr: float | None = None
     pose_prior_weight: float | None = None
@@ -119,17 +119,14 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
     return config
 
 
-def poses_are_estimated(dataset: DatasetArtifact) -> bool:
-    """Whether the dataset's poses were estimated by igavatar (a video's fit), not given."""
-    return dataset.data.get("poses") == "estimated"
-
-
 def _pose_refiner(config: TrainConfig, dataset: DatasetArtifact, data) -> PoseRefiner | None:
     if not config.refine_poses:
         return None
     subject = dataset.subject
+    # The root and the major bones (those root finding starts from): the ones the images see.
+    joints = np.union1d([0], subject.init_bones)
     return PoseRefiner(data.bone_transforms, subject.parents, subject.rest_joints, subject.canonical_rotations,
-                       data.train_indices)
+                       data.train_indices, joints)
 
 
 def _write_refined_poses(path: Path, trainer: Trainer) -> None:
@@ -393,8 +390,6 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     device = resolve_device(options.device)
     build_kernels(device, progress)
     config = resolve_config(options)
-    if options.refine_poses is None:
-        config = dataclasses.replace(config, refine_poses=poses_are_estimated(dataset))
     require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
                    f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
     torch.manual_seed(config.seed)

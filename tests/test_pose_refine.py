@@ -57,6 +57,18 @@ def test_a_correction_rotates_the_joint_as_forward_kinematics_does():
                                           forward_kinematics(canonical, rest, parents)[None])[0, :2], atol=1e-5)
 
 
+def test_only_the_chosen_joints_are_corrected():
+    parents, rest, canonical, _, _, transforms = _skeleton_frames(n_frames=1, seed=5)
+    refiner = PoseRefiner(transforms.float(), parents, rest, canonical.numpy(), torch.tensor([0]), joints=np.array([0, 2]))
+    assert refiner.rotation.shape == (1, 2, 3)
+    with torch.no_grad():
+        refiner.rotation[0, 1] = torch.tensor([0.0, 0.4, 0.0])  # joint 2
+    corrected = refiner.bone_transforms(0)
+    # Joints 0, 1 and the other branch (4, 5) keep their transforms; 2 and its child 3 turn.
+    assert torch.allclose(corrected[[0, 1, 4, 5]], transforms[0, [0, 1, 4, 5]].float(), atol=1e-5)
+    assert not torch.allclose(corrected[[2, 3]], transforms[0, [2, 3]].float(), atol=1e-3)
+
+
 def test_refinement_reduces_a_known_pose_error(small_run, tmp_path):
     """An avatar whose SDF is the subject's template, one frame shifted sideways by 4 cm: optimising
     only the corrections against that frame's mask moves its root back to where the image shows it."""

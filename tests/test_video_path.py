@@ -60,7 +60,8 @@ def test_video_to_dataset_train_export_animate(cli_runner, turn_clip, tmp_path):
                     "--test-every", "6", "--json")
     assert again.exit_code == 0 and "skipped" in json.loads(again.stdout)["video"]
 
-    trained = _invoke(cli_runner, "train", "--run-dir", str(run), "--preset", "tiny", "--device", "cpu", "--json")
+    trained = _invoke(cli_runner, "train", "--run-dir", str(run), "--preset", "tiny", "--refine-poses", "--device", "cpu",
+                      "--json")
     assert trained.exit_code == 0, trained.output
     model = json.loads((run / "model" / "manifest.json").read_text())
     assert model["config"]["refine_poses"] is True and model["data"]["pose_refinement"]["frames"] == 15

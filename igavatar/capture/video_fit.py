@@ -186,6 +186,10 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
 #: towards its labels. It must stay far below the turning speed's change it saves: a back half of
 #: 17 frames read against a turn saves about 0.6 rad in all.
 RELABEL_COST = 0.005
+#: Cost (radians) of changing the reading between two frames. A misread back view spans many
+#: frames; a lone relabelled frame at a side view (where both readings nearly agree) was a wrong
+#: call on a synthetic turn (its joints 9 cm off): two switches cost more than such a frame saves.
+SWITCH_COST = 0.3
 
 
 def consistent_facing(world_xyz: np.ndarray) -> np.ndarray:
@@ -194,8 +198,8 @@ def consistent_facing(world_xyz: np.ndarray) -> np.ndarray:
     Each frame has two readings, as given or mirrored (left-right swapped, depth reversed: the
     back view of the same silhouette). A dynamic program over pairs of consecutive readings picks
     the sequence whose turning speed changes least (a turn keeps going; BlazePose's frontal
-    reading of a turn swings back at the side views), plus a little turning and a tie-break
-    (RELABEL_COST) per mirrored frame. Frames without a torso keep their labels and do not break the chain.
+    reading of a turn swings back at the side views), plus a little turning, a tie-break
+    (RELABEL_COST) per mirrored frame and SWITCH_COST per change of reading. Frames without a torso keep their labels and do not break the chain.
     """
     yaw = np.stack([facing_yaw(world_xyz), facing_yaw(_mirrored(world_xyz))], axis=1)  # (N, 2)
     valid = np.flatnonzero(np.isfinite(yaw).all(axis=1))
@@ -205,21 +209,22 @@ def consistent_facing(world_xyz: np.ndarray) -> np.ndarray:
     y = yaw[valid]
     # cost[a, b]: best cost of a sequence ending with readings a (previous frame) and b (this one).
     step = np.abs(_wrap(y[1][None, :] - y[0][:, None]))
-    cost = 0.1 * step + RELABEL_COST * (np.arange(2)[:, None] + np.arange(2)[None, :])
+    readings = np.arange(2)
+    switch = SWITCH_COST * (readings[:, None] != readings[None, :])
+    cost = 0.1 * step + RELABEL_COST * (readings[:, None] + readings[None, :]) + switch
     back: list[np.ndarray] = []
     for t in range(2, len(y)):
         velocity_prev = _wrap(y[t - 1][None, :] - y[t - 2][:, None])  # [a, b]
         velocity = _wrap(y[t][None, :] - y[t - 1][:, None])           # [b, c]
         total = (cost[:, :, None] + np.abs(_wrap(velocity[None] - velocity_prev[:, :, None]))
-                 + 0.1 * np.abs(velocity)[None] + RELABEL_COST * np.arange(2)[None, None, :])
+                 + 0.1 * np.abs(velocity)[None] + RELABEL_COST * readings[None, None, :] + switch[None])
         back.append(total.argmin(axis=0))                             # best a for each (b, c)
         cost = total.min(axis=0)
     b, c = np.unravel_index(int(cost.argmin()), cost.shape)
-    readings = [c, b]
+    path = [c, b]
     for choice in reversed(back):
-        a = choice[readings[-1], readings[-2]]
-        readings.append(a)
-    flips[valid] = np.array(readings[::-1], dtype=bool)
+        path.append(choice[path[-1], path[-2]])
+    flips[valid] = np.array(path[::-1], dtype=bool)
     return flips
 
 

@@ -27,7 +27,8 @@ REFINED_POSES_FILE = "refined_poses.npz"
 
 
 class PoseRefiner(torch.nn.Module):
-    """Rotation corrections (T, J, 3) and root translation corrections (T, 3) for T training frames.
+    """Rotation corrections (T, K, 3) of K joints and root translation corrections (T, 3) for T
+    training frames.
 
     Args:
         bone_transforms: (N, J, 4, 4) the dataset's canonical -> posed world transforms.
@@ -35,10 +36,13 @@ class PoseRefiner(torch.nn.Module):
         rest_joints: (J, 3) rest joints; canonical_rotations: (J, 3, 3) local rotations of the
             canonical pose (the dataset's subject arrays).
         frames: (T,) dataset indices of the frames that get corrections.
+        joints: (K,) the joints whose rotations are corrected (None: all). The major bones that
+            move much skin: the images say little about a finger or a twist bone, whose
+            corrections then only wander.
     """
 
     def __init__(self, bone_transforms: torch.Tensor, parents: np.ndarray, rest_joints: np.ndarray,
-                 canonical_rotations: np.ndarray, frames: torch.Tensor) -> None:
+                 canonical_rotations: np.ndarray, frames: torch.Tensor, joints: np.ndarray | None = None) -> None:
         super().__init__()
         parents = np.asarray(parents, dtype=np.int64)
         canonical = forward_kinematics(torch.as_tensor(canonical_rotations, dtype=torch.float64),
@@ -55,7 +59,9 @@ class PoseRefiner(torch.nn.Module):
         slots = torch.full((int(bone_transforms.shape[0]),), -1, dtype=torch.long)
         slots[frames] = torch.arange(len(frames))
         self.register_buffer("slots", slots)
-        self.rotation = torch.nn.Parameter(torch.zeros(len(frames), len(parents), 3, dtype=torch.float32))
+        joints = np.arange(len(parents)) if joints is None else np.unique(np.asarray(joints, dtype=np.int64))
+        self.register_buffer("joints", torch.as_tensor(joints))
+        self.rotation = torch.nn.Parameter(torch.zeros(len(frames), len(joints), 3, dtype=torch.float32))
         self.translation = torch.nn.Parameter(torch.zeros(len(frames), 3, dtype=torch.float32))
         self._levels = _levels(self.parents)
 
@@ -74,9 +80,8 @@ class PoseRefiner(torch.nn.Module):
                                 for s in range(len(self.frames))])
 
     def _corrected(self, local: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-        correction = torch.zeros_like(local)
-        correction[:, :3, :3] = axis_angle_to_matrix(rotation.to(local.dtype))
-        correction[:, 3, 3] = 1.0
+        correction = torch.eye(4, dtype=local.dtype, device=local.device).repeat(len(local), 1, 1)
+        correction[self.joints, :3, :3] = axis_angle_to_matrix(rotation.to(local.dtype))
         local = local @ correction
         shift = torch.zeros_like(local[0])
         shift[:3, 3] = translation.to(local.dtype)

@@ -333,11 +333,25 @@ class Trainer:
 
     def _with_pose_gradient(self, frame: PreparedFrame, samples: RaySamples, canonical: RaySamples,
                             x_rigid: torch.Tensor) -> tuple[RaySamples, torch.Tensor]:
-        """The canonical samples with their implicit-function gradients w.r.t. the frame's bone
-        transforms (deformer.attach_implicit_gradient), so the rendering loss reaches the pose
-        corrections: root finding itself is not differentiable."""
+        """The canonical samples with implicit-function gradients w.r.t. the frame's bone transforms
+        (deformer.attach_implicit_gradient), so the rendering loss reaches the pose corrections:
+        root finding itself is not differentiable.
+
+        Only `pose_gradient_samples` random samples carry them, scaled by (all / chosen) so that
+        their sum estimates the full gradient: the Jacobian and grid_sample's backward into the
+        blended grid over every sample made a step 3-4x slower than one without refinement.
+        """
         x_posed = samples.positions[canonical.valid]
-        x_attached = self.avatar.deformer.attach_implicit_gradient(x_rigid, x_posed, frame).to(x_rigid.dtype)
+        total = x_rigid.shape[0]
+        chosen = min(total, self.config.pose_gradient_samples)
+        if chosen == 0:
+            return canonical, x_rigid
+        generator = torch.Generator().manual_seed(self.config.seed * 104729 + self.step)
+        pick = torch.randperm(total, generator=generator)[:chosen].to(x_rigid.device)
+        attached = self.avatar.deformer.attach_implicit_gradient(x_rigid[pick], x_posed[pick], frame).to(x_rigid.dtype)
+        # Value x_rigid, gradient (total / chosen) x the implicit one on the chosen samples.
+        x_attached = x_rigid.detach().clone()
+        x_attached[pick] = x_rigid[pick].detach() + (total / chosen) * (attached - attached.detach())
         positions = canonical.positions.clone()
         positions[canonical.valid] = x_attached
         return dataclasses.replace(canonical, positions=positions), x_attached
