@@ -28,6 +28,8 @@ colors is written only for the worst frame (30 colored meshes would dwarf the re
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 import time
@@ -154,6 +156,19 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
     if not ok:
         raise InputError(f"{path}: PNG encoding failed")
     atomic_write_bytes(path, data.tobytes())
+
+
+def _without_missing_scans(options: EvalOptions) -> tuple[EvalOptions, str | None]:
+    """Geometry off, and why, when no --gt was given and the dataset has no scans (a video, a
+    real capture): its images are still scored."""
+    if not options.geometry or options.gt is not None:
+        return options, None
+    dataset = read_dataset(resolve_dataset(read_model_manifest(Path(options.model)), options.dataset))
+    if dataset.data.get("has_scans", True):
+        return options, None
+    return (dataclasses.replace(options, geometry=False),
+            f"{dataset.path}: the capture had no ground-truth scans, so geometry is not evaluated (pass --gt DIR "
+            "to score it against scans of your own); images are")
 
 
 def _check_options(options: EvalOptions) -> None:
@@ -378,7 +393,10 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     Raises InputError/ArtifactError for bad inputs (nothing is written then).
     """
     clock = StageClock()
+    options, skipped_geometry = _without_missing_scans(options)
     _check_options(options)
+    if skipped_geometry:
+        progress.status(skipped_geometry)
     inputs = _read_inputs(options, progress)
     device = resolve_device(options.device)
     build_kernels(device, progress)
@@ -386,7 +404,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
         model = load_model(inputs.model_dir, device)
         _check_compatible(model, inputs.dataset)
         model.avatar.surface_level_mode = options.surface_level
-    notes: list[str] = []
+    notes: list[str] = [skipped_geometry] if skipped_geometry else []
     canonical = _canonical_geometry(model, inputs, options, clock, notes, progress) if options.geometry else None
     names = list(inputs.test.names)
     plan = _image_plan(options, device, inputs.dataset, len(names))

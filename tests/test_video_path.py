@@ -75,6 +75,13 @@ def test_video_to_dataset_train_export_animate(cli_runner, turn_clip, tmp_path):
     animated = _invoke(cli_runner, "animate", "--run-dir", str(run), "--motion", "walk", "--frames", "2",
                        "--resolution", "32", "--device", "cpu", "--json")
     assert animated.exit_code == 0, animated.output
+    # A video has no scans: eval scores the held-out images and says geometry was skipped.
+    scored = _invoke(cli_runner, "eval", "--run-dir", str(run), "--image-scale", "0.25", "--samples", "16",
+                     "--device", "cpu", "--json")
+    assert scored.exit_code == 0, scored.output
+    metrics = json.loads((run / "report" / "metrics.json").read_text())
+    assert len(metrics["frames"]) == 3 and metrics["frames"][0]["values"]["psnr_full_db"] is not None
+    assert "geometry is not evaluated" in json.dumps(metrics)
 
 
 def _write_clip(path: Path, frames: list[np.ndarray]) -> Path:
