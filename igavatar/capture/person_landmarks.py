@@ -16,9 +16,11 @@ shows up as foreground that the tracked person's mask does not cover (igavatar.c
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,6 +85,22 @@ def _import_solutions():
     return pose, selfie_segmentation
 
 
+@contextlib.contextmanager
+def _native_stderr_silenced() -> Iterator[None]:
+    """Send file descriptor 2 to /dev/null: MediaPipe's C++ side (TFLite, absl) prints a few lines
+    of its own when a graph starts ("Created TensorFlow Lite XNNPACK delegate", feedback-tensor
+    warnings) that no environment variable turns off."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def mediapipe_available() -> bool:
     try:
         _import_solutions()
@@ -108,15 +126,18 @@ def track_person(images: Sequence[np.ndarray], on_frame: Callable[[int], None] |
         visibility=np.zeros((n_frames, LANDMARK_COUNT), np.float32),
         world_xyz=np.full((n_frames, LANDMARK_COUNT, 3), np.nan, np.float32),
     )
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), contextlib.ExitStack() as stack:
         warnings.simplefilter("ignore")  # protobuf deprecation warnings from inside MediaPipe
-        with pose_module.Pose(static_image_mode=False, model_complexity=1, enable_segmentation=True,
-                              smooth_segmentation=True) as pose, \
-                selfie_module.SelfieSegmentation(model_selection=0) as selfie:
-            for index, image in enumerate(images):
+        with _native_stderr_silenced():  # the graphs start with the objects and their first frame
+            pose = stack.enter_context(pose_module.Pose(static_image_mode=False, model_complexity=1,
+                                                        enable_segmentation=True, smooth_segmentation=True))
+            selfie = stack.enter_context(selfie_module.SelfieSegmentation(model_selection=0))
+            _track_frame(pose, selfie, np.ascontiguousarray(images[0]), tracks, 0)
+        for index, image in enumerate(images):
+            if index:
                 _track_frame(pose, selfie, np.ascontiguousarray(image), tracks, index)
-                if on_frame is not None:
-                    on_frame(index)
+            if on_frame is not None:
+                on_frame(index)
     return tracks
 
 
