@@ -199,6 +199,14 @@ def _report_row(report: Path, train_s: float | None) -> dict:
             **{key: statistics.mean(values[key]) for key in IMAGE_KEYS + GEOMETRY_KEYS if key in values}}
 
 
+def video_summary(capture: Path) -> dict:
+    """The video path's fit residual and seconds a frame, from the capture it wrote."""
+    manifest = json.loads((capture / "manifest.json").read_text())
+    frames = manifest["data"]["video"]["kept_frames"]
+    return {"fit_residual_px": manifest["data"]["video"]["fit"]["mean_residual_px"],
+            "seconds_per_frame": manifest["timings"]["total_s"] / frames}
+
+
 def run_subject(subject: str, args: argparse.Namespace) -> dict:
     base = args.run_dir / subject
     base.mkdir(parents=True, exist_ok=True)
@@ -225,11 +233,13 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
                 igavatar("preprocess", "--run-dir", str(run), "--force")
             gt, extra = truth / "scans", {}
         else:
-            started = time.perf_counter()
-            summary = igavatar("preprocess", "--video", str(clip), "--run-dir", str(run), "--force",
-                               "--test-every", str(TEST_EVERY), *video_flags[variant])
-            video_s = time.perf_counter() - started
+            started, video_s = time.perf_counter(), None
+            if not (args.reuse and (run / "report" / "metrics.json").is_file()):
+                igavatar("preprocess", "--video", str(clip), "--run-dir", str(run), "--force",
+                         "--test-every", str(TEST_EVERY), *video_flags[variant])
+                video_s = time.perf_counter() - started
             capture = run / "capture"
+            summary = {"video": video_summary(capture)}
             ious = mask_iou(truth, capture, [f"frame_{i:06d}" for i in range(len(names))])
             alignment = aligned_scans(truth, capture, run / "scans-aligned")
             gt = run / "scans-aligned"
