@@ -149,9 +149,15 @@ def mask_iou(truth: Path, video: Path, names: list[str]) -> list[float]:
     return ious
 
 
+def kept_indices(video: Path) -> list[int]:
+    """Source indices of the frames the video path kept (frame_000123 -> 123)."""
+    return [int(name.split("_")[1]) for name in json.loads((video / "capture.json").read_text())["frames"]]
+
+
 def aligned_scans(truth: Path, video: Path, out: Path) -> dict:
-    """The true scans moved into the video capture's world by one similarity from the joints."""
-    true_joints, fitted = main_joints(truth), main_joints(video)
+    """The true scans moved into the video capture's world by one similarity from the joints of
+    the frames the video path kept."""
+    true_joints, fitted = main_joints(truth)[kept_indices(video)], main_joints(video)
     scale, rotation, shift = similarity(true_joints.reshape(-1, 3), fitted.reshape(-1, 3))
     out.mkdir(parents=True, exist_ok=True)
     for scan in sorted((truth / "scans").glob("*.ply")):
@@ -226,7 +232,7 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
     row: dict = {"subject": subject, "frames": len(names), "true_height_m": height, "true_focal_px": focal,
                  "garment": meta["subject"]["garment"]}
     video_flags = {"video-true": ["--height", f"{height:.4f}", "--focal", f"{focal:.3f}"], "video-default": []}
-    for variant in VARIANTS:
+    for variant in args.variants.split(","):
         run = base / variant
         if variant == "truth":
             if not (args.reuse and (run / "report" / "metrics.json").is_file()):
@@ -240,7 +246,7 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
                 video_s = time.perf_counter() - started
             capture = run / "capture"
             summary = {"video": video_summary(capture)}
-            ious = mask_iou(truth, capture, [f"frame_{i:06d}" for i in range(len(names))])
+            ious = mask_iou(truth, capture, [f"frame_{i:06d}" for i in kept_indices(capture)])
             alignment = aligned_scans(truth, capture, run / "scans-aligned")
             gt = run / "scans-aligned"
             extra = {"mask_iou": statistics.mean(ious), "mask_iou_min": min(ious),
@@ -334,6 +340,8 @@ def markdown(rows: list[dict], args: argparse.Namespace, command: str, made: str
              "CD-L1 mm | IoU | NC surf | limbs |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         for variant in VARIANTS:
+            if variant not in row:
+                continue
             v = row[variant]
             lines.append(f"| {row['subject']} | {variant} | {number(v.get('mask_iou'), 3)} | {number(v.get('pa_mpjpe_mm'), 1)} | "
                          f"{number(v.get('fit_residual_px'))} | {number(v.get('video_s_per_frame'), 3)} | "
@@ -353,6 +361,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--train-args", nargs="*", default=[], help="extra `train` options for every variant")
     parser.add_argument("--tag", default="video-path")
+    parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--write-results", action="store_true")
     parser.add_argument("--reuse", action="store_true", help="keep variants already trained and evaluated in RUN")
     parser.add_argument("--noise", type=lambda text: [float(v) for v in text.split(",")], default=[],
