@@ -172,7 +172,7 @@ def _fitted_sheet(frames: VideoFrames, body: AnnyBody, fit, camera: VideoCamera)
 
 
 def _fit(options: VideoOptions, frames: VideoFrames, tracks: PersonTracks, progress: ProgressSink):
-    """Relabel back views, fit Anny; -> (body, camera, fit, flips)."""
+    """Relabel back views, fit Anny; -> (body, camera, fit, flips (N,) bool, relabelled tracks)."""
     flips = consistent_facing(tracks.world_xyz)
     tracks = relabelled(tracks, flips)
     body = anny_body_of_height(AnnyBody(load_anny(options.anny_cache, on_status=progress.status)), options.height_m)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from igavatar.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import Skeleton, forward_kinematics
 from igavatar.errors import InputError
 
@@ -292,7 +292,3 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
     residual[obs.confidence.numpy() <= 0] = np.nan
     return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy())
 
-
-def rotation_angle_deg(local_rotations: np.ndarray) -> np.ndarray:
-    """(...) angle in degrees of each rotation matrix (..., 3, 3); for reporting."""
-    return np.degrees(matrix_to_axis_angle(torch.as_tensor(local_rotations)).norm(dim=-1).numpy())

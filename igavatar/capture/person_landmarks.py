@@ -101,14 +101,6 @@ def _native_stderr_silenced() -> Iterator[None]:
         os.close(saved)
 
 
-def mediapipe_available() -> bool:
-    try:
-        _import_solutions()
-    except InputError:
-        return False
-    return True
-
-
 def track_person(images: Sequence[np.ndarray], on_frame: Callable[[int], None] | None = None) -> PersonTracks:
     """Run BlazePose (with segmentation, in tracking mode) and selfie segmentation over `images`.
 

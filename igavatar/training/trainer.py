@@ -14,7 +14,6 @@ resumed run continues exactly.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections import OrderedDict
@@ -45,7 +44,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
-from igavatar.training.pose_refine import PoseRefiner
+from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
     CanonicalHull, canonical_visual_hull, free_space_loss, training_skin, voting_views,
@@ -281,7 +280,9 @@ class Trainer:
         canonical_samples, x_rigid = posed.canonical_samples(samples)
         refining = self._refining(index)
         if refining:
-            canonical_samples, x_rigid = self._with_pose_gradient(posed.frame, samples, canonical_samples, x_rigid)
+            pose_generator = torch.Generator().manual_seed(config.seed * 104729 + self.step)
+            canonical_samples, x_rigid = with_pose_gradient(self.avatar.deformer, posed.frame, samples, canonical_samples,
+                                                            x_rigid, config.pose_gradient_samples, pose_generator)
 
         noise_std = config.sigma_noise_std if self.step < config.sigma_noise_steps else 0.0
         field_generator = torch.Generator(device=device).manual_seed(self.step + 1)
@@ -330,31 +331,6 @@ class Trainer:
         if self.pose_refiner is not None:
             logs.update(self.pose_refiner.correction_magnitudes())
         return logs
-
-    def _with_pose_gradient(self, frame: PreparedFrame, samples: RaySamples, canonical: RaySamples,
-                            x_rigid: torch.Tensor) -> tuple[RaySamples, torch.Tensor]:
-        """The canonical samples with implicit-function gradients w.r.t. the frame's bone transforms
-        (deformer.attach_implicit_gradient), so the rendering loss reaches the pose corrections:
-        root finding itself is not differentiable.
-
-        Only `pose_gradient_samples` random samples carry them, scaled by (all / chosen) so that
-        their sum estimates the full gradient: the Jacobian and grid_sample's backward into the
-        blended grid over every sample made a step 3-4x slower than one without refinement.
-        """
-        x_posed = samples.positions[canonical.valid]
-        total = x_rigid.shape[0]
-        chosen = min(total, self.config.pose_gradient_samples)
-        if chosen == 0:
-            return canonical, x_rigid
-        generator = torch.Generator().manual_seed(self.config.seed * 104729 + self.step)
-        pick = torch.randperm(total, generator=generator)[:chosen].to(x_rigid.device)
-        attached = self.avatar.deformer.attach_implicit_gradient(x_rigid[pick], x_posed[pick], frame).to(x_rigid.dtype)
-        # Value x_rigid, gradient (total / chosen) x the implicit one on the chosen samples.
-        x_attached = x_rigid.detach().clone()
-        x_attached[pick] = x_rigid[pick].detach() + (total / chosen) * (attached - attached.detach())
-        positions = canonical.positions.clone()
-        positions[canonical.valid] = x_attached
-        return dataclasses.replace(canonical, positions=positions), x_attached
 
     def _refining(self, index: int) -> bool:
         """Whether this step updates frame `index`'s pose corrections."""
