@@ -34,7 +34,7 @@ from igavatar.artifacts.targets import check_output_target
 from igavatar.body.anny_body import AnnyBody, load_anny
 from igavatar.body.skeleton import forward_kinematics
 from igavatar.capture.contact_sheet import contact_sheet
-from igavatar.capture.person_landmarks import PersonTracks, track_person
+from igavatar.capture.person_landmarks import PersonTracks, person_mask, track_person
 from igavatar.capture.video_checks import check_detections, check_in_frame, check_one_person, check_still_camera
 from igavatar.capture.video_fit import (DEFAULT_HEIGHT_M, FREE_BONES, VideoCamera, anny_body_of_height, consistent_facing,
                                         fit_anny_to_tracks, relabelled)
@@ -110,20 +110,6 @@ def _keep_detected(frames: VideoFrames, tracks: PersonTracks) -> tuple[VideoFram
     tracks = PersonTracks(tracks.detected[keep], tracks.masks[keep], tracks.people[keep], tracks.image_xy[keep],
                           tracks.visibility[keep], tracks.world_xyz[keep])
     return frames, tracks
-
-
-def person_mask(probability: np.ndarray) -> np.ndarray:
-    """(H, W) uint8 0/255: the segmentation thresholded at 0.5, its largest piece, holes filled."""
-    binary = (probability > 0.5).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
-    if count <= 1:
-        return binary * 255
-    largest = 1 + int(stats[1:, cv2.CC_STAT_AREA].argmax())
-    piece = (labels == largest).astype(np.uint8)
-    # Fill holes: background that a flood from outside the image cannot reach is the person's.
-    flood = np.pad(piece, 1)
-    cv2.floodFill(flood, np.zeros((flood.shape[0] + 2, flood.shape[1] + 2), np.uint8), (0, 0), 2)
-    return ((piece | (flood[1:-1, 1:-1] == 0)) * 255).astype(np.uint8)
 
 
 def _body_silhouette(vertices_world: np.ndarray, faces: np.ndarray, camera: VideoCamera) -> np.ndarray:

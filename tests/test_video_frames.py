@@ -8,12 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from igavatar.capture.person_landmarks import PersonTracks
+from igavatar.capture.person_landmarks import PersonTracks, person_mask
 from igavatar.capture.video_checks import (background_motion_px, check_detections, check_in_frame, check_one_person,
                                            check_still_camera)
 from igavatar.capture.video_frames import FrameSelection, read_video_frames
 from igavatar.errors import InputError
-from stages.video import person_mask
 
 
 def _textured_frames(n: int, size: int = 96, seed: int = 0, still: int = 0) -> list[np.ndarray]:

@@ -23,6 +23,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from igavatar.errors import InputError
@@ -150,3 +151,17 @@ def _track_frame(pose, selfie, image: np.ndarray, tracks: PersonTracks, index: i
         tracks.world_xyz[index] = [(lm.x, lm.y, lm.z) for lm in result.pose_world_landmarks.landmark]
     if result.segmentation_mask is not None:
         tracks.masks[index] = result.segmentation_mask
+
+
+def person_mask(probability: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 0/255: the segmentation thresholded at 0.5, its largest piece, holes filled."""
+    binary = (probability > 0.5).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    if count <= 1:
+        return binary * 255
+    largest = 1 + int(stats[1:, cv2.CC_STAT_AREA].argmax())
+    piece = (labels == largest).astype(np.uint8)
+    # Fill holes: background that a flood from outside the image cannot reach is the person's.
+    flood = np.pad(piece, 1)
+    cv2.floodFill(flood, np.zeros((flood.shape[0] + 2, flood.shape[1] + 2), np.uint8), (0, 0), 2)
+    return ((piece | (flood[1:-1, 1:-1] == 0)) * 255).astype(np.uint8)
