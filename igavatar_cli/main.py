@@ -10,9 +10,7 @@ user mistakes. Heavy imports (torch, anny) happen inside commands so `--help` st
 from __future__ import annotations
 
 import json
-import signal
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
 from typing import Annotated, Optional
@@ -23,6 +21,7 @@ from rich.console import Console
 from igavatar import __version__
 from igavatar.artifacts.storage import storage_message
 from igavatar.errors import IgavatarError, NotAvailableError, ResourceLimitError, StorageError, Terminated
+from igavatar.interrupts import signals_as_interrupts
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
 from stages.resources import tune_host_allocator
 
@@ -63,31 +62,13 @@ def _error_line(message: str) -> None:
     err_console.print(message, markup=False, highlight=False, soft_wrap=True)
 
 
-def _raise_terminated(signum, frame) -> None:
-    raise Terminated()
-
-
-@contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM (kill, a batch scheduler, CI's timeout) raises Terminated, which stages handle like Ctrl-C."""
-    try:
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    except ValueError:  # not the main thread (embedded use): leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def user_errors(func: Callable) -> Callable:
     """Turn library errors, Ctrl-C, SIGTERM and fixable disk/memory failures into one line and an exit code."""
 
     @wraps(func)
     def wrapper(*args, **kwargs):
         try:
-            with _sigterm_as_interrupt():
+            with signals_as_interrupts():
                 return func(*args, **kwargs)
         except IgavatarError as exc:
             _error_line(str(exc))

@@ -35,6 +35,7 @@ from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file
 from igavatar.avatar.dataset import PRIOR_FILE, DatasetArtifact, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.errors import IgavatarError, InputError, Terminated
+from igavatar.interrupts import deferred_interrupts, raise_if_interrupted
 from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import load_state, save_state
@@ -177,8 +178,8 @@ def _snapshot(state: dict) -> dict:
 
 def _shape_initialize(
     avatar: Avatar, config: TrainConfig, dataset: DatasetArtifact, cache_paths: list[Path], progress: ProgressSink
-) -> tuple[dict, float]:
-    """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds)."""
+) -> tuple[dict, float, Path | None]:
+    """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds, the cache reused or None)."""
     template = dataset.path / PRIOR_FILE
     canonical_box = dataset.subject.canonical_box
     key = _shape_init_key(config, sha256_file(template) if template.is_file() else None, canonical_box)
@@ -188,7 +189,7 @@ def _shape_initialize(
             if cached.get("key") == key:
                 avatar.sdf_field.load_state_dict(cached["sdf"])
                 progress.status(f"shape initialization reused from {path}")
-                return cached, 0.0
+                return cached, 0.0, path
     started = time.perf_counter()
     if template.is_file() and config.shape_init_steps > 0:
         import trimesh
@@ -198,11 +199,11 @@ def _shape_initialize(
         with progress.task("shape initialization", total=config.shape_init_steps) as advance:
             fit_sdf_to_template(
                 avatar.sdf_field, targets, config.shape_init_steps, config.shape_init_points, seed=config.seed,
-                on_step=lambda step, loss: advance(1, loss=f"{loss:.4f}"),
+                on_step=lambda step, loss: (raise_if_interrupted(), advance(1, loss=f"{loss:.4f}")),
             )
     else:
         progress.status("no template mesh: the SDF starts as a sphere")
-    return {"key": key, "sdf": _snapshot(avatar.sdf_field.state_dict())}, time.perf_counter() - started
+    return {"key": key, "sdf": _snapshot(avatar.sdf_field.state_dict())}, time.perf_counter() - started, None
 
 
 def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) -> tuple[np.ndarray, float]:
@@ -309,9 +310,13 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: _TrainingLog, save_c
         with progress.task("training", total=trainer.total_steps) as advance:
             advance(trainer.step)
             while trainer.step < trainer.total_steps:
-                last = trainer.train_step()
-                if trainer.step % config.log_every == 0 or trainer.step == trainer.total_steps:
-                    log.rows.append({"step": trainer.step, **{k: f"{v:.6g}" for k, v in last.items()}})
+                raise_if_interrupted()  # one a library swallowed (trimesh catches BaseException)
+                # A step is whole or not at all: an interrupt inside it (after the optimizer, before
+                # the step count) would checkpoint half a step, and --resume would not be exact.
+                with deferred_interrupts():
+                    last = trainer.train_step()
+                    if trainer.step % config.log_every == 0 or trainer.step == trainer.total_steps:
+                        log.rows.append({"step": trainer.step, **{k: f"{v:.6g}" for k, v in last.items()}})
                 if config.checkpoint_every and trainer.step % config.checkpoint_every == 0:
                     save_checkpoint()
                 if config.validate_every and trainer.step % config.validate_every == 0 and trainer.step < trainer.total_steps:
@@ -372,14 +377,12 @@ def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, sh
         _write_png(tmp / "validation" / f"{name}.png", image)
 
 
-def _resume(trainer: Trainer, checkpoint: Path, run_key: str, config_json: dict, dataset_sha: str,
-            progress: ProgressSink) -> None:
-    """Continue from the checkpoint of an interrupted run with the same options and dataset."""
+def _checkpoint_of_this_run(checkpoint: Path, run_key: str, config_json: dict, dataset_sha: str) -> dict:
+    """The checkpoint of an interrupted run with the same options and dataset; InputError if it is another's."""
     state = load_state(checkpoint)
     if state.get("run_key") != run_key:
         raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
-    trainer.load_state_dict(state["trainer"])
-    progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
+    return state
 
 
 def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
@@ -402,11 +405,14 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     config_json = config_to_json(config)
     dataset_sha = sha256_file(dataset.path / "manifest.json")
     run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
-    shape_state, shape_seconds = _shape_initialize(
+    # Refused before anything in the work folder is touched.
+    resumed = _checkpoint_of_this_run(checkpoint, run_key, config_json, dataset_sha) if options.resume else None
+    shape_state, shape_seconds, reused_from = _shape_initialize(
         avatar, config, dataset, [work / "shape_init.npz", out / "shape_init.npz"], progress
     )
     clock.add("shape_init_s", shape_seconds)
-    save_state(work / "shape_init.npz", shape_state)
+    if reused_from != work / "shape_init.npz":
+        save_state(work / "shape_init.npz", shape_state)
     # The template is read only when the body-inside term will use it.
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
     trainer = Trainer(config, data, avatar, device, body_template=body_template,
@@ -419,11 +425,16 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
             "the fit looks heavier than the subject, or the masks are tight; a fitted template with exact masks stays "
             "under 0.02; --body-inside-max-spill 1 uses it anyway)")
         )
-    if options.resume:
-        _resume(trainer, checkpoint, run_key, config_json, dataset_sha, progress)
+    if resumed is not None:
+        trainer.load_state_dict(resumed["trainer"])
+        progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
     log = _TrainingLog.open(work / "training_log.csv", options.resume)
 
     def save_checkpoint() -> None:
+        with deferred_interrupts():  # the checkpoint and its log rows are written together
+            _save_checkpoint()
+
+    def _save_checkpoint() -> None:
         save_state(checkpoint, {"run_key": run_key, "config": json.dumps(config_json), "dataset_sha256": dataset_sha,
                                 "trainer": trainer.state_dict()})
         log.save()

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from igavatar.artifacts.storage import storage_errors
 from igavatar.artifacts.targets import check_output_target
+from igavatar.interrupts import deferred_interrupts, raise_if_interrupted
 
 
 def _prefix(name: str, role: str) -> str:
@@ -98,9 +99,18 @@ def atomic_directory(target: Path, *, kind: str, inputs: Iterable[Path] = ()) ->
             yield tmp
         # The block may have run for minutes: check again that nobody put something else there.
         check_output_target(target, kind, inputs)
+        # A Ctrl-C that a library swallowed inside the block still means "do not replace".
+        raise_if_interrupted()
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    # The renames and the removal of the old artifact are not split by Ctrl-C (held until done).
+    with deferred_interrupts():
+        _replace(tmp, target)
+
+
+def _replace(tmp: Path, target: Path) -> None:
+    """Rename `tmp` to `target`, setting any old target aside first and removing it after."""
     old = None
     try:
         with storage_errors(target):

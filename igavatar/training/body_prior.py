@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
 
 from igavatar.capture.ghost_limbs import SkinFn
 from igavatar.capture.visual_hull import MaskViews, free_points, vote_masks
+from igavatar.geometry.mesh_ops import nearest_sample_distance
 from igavatar.geometry.projection import project_points
 
 __all__ = [
@@ -110,7 +110,7 @@ def sample_inside_template(
     points = surface - mesh.face_normals[face] * rng.uniform(0.0, depth_m, (n_points, 1))
     # The distance to a dense surface sample (the same estimate as the shape initialization's).
     dense, _ = trimesh.sample.sample_surface(mesh, 4 * n_points, seed=seed + 1)
-    distance, _ = cKDTree(dense).query(points, workers=-1)
+    distance = nearest_sample_distance(dense, points)
     keep = mesh.contains(points) & (distance > 5e-4)
     return points[keep], -distance[keep]
 
