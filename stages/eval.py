@@ -444,10 +444,20 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     if inputs.matching is not None:
         summary.update(scans_matched=len(inputs.matching.matched), scans_missing=inputs.matching.missing,
                        scans_extra=inputs.matching.extra)
-    for key in METRIC_KEYS:
+    summary.update(summary_of_metrics(document, len(records)))
+    summary["seconds"] = round(clock.elapsed(), 1)
+    return summary
+
+
+def summary_of_metrics(document: dict, n_frames: int, keys: tuple[str, ...] = METRIC_KEYS) -> dict[str, Any]:
+    """Each metric's mean (or why there is none) for the console; a mean over only some of the
+    `n_frames` test frames adds `<key>_covers` saying how many."""
+    summary: dict[str, Any] = {}
+    for key in keys:
         entry = document["metrics"][key]
         summary[key] = round(entry["mean"], 4) if entry["mean"] is not None else entry["status"]
-    summary["seconds"] = round(clock.elapsed(), 1)
+        if 0 < entry["n_frames"] < n_frames:
+            summary[f"{key}_covers"] = f"{entry['n_frames']} of {n_frames} test frames (see the report's notes)"
     return summary
 
 

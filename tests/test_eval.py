@@ -13,7 +13,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from igavatar.artifacts.manifest import read_artifact, validate_against
+from igavatar.artifacts.manifest import read_artifact, sealed, validate_against
 from igavatar.errors import InputError
 from igavatar.metrics.geometry import evenly_spaced_vertices, volumetric_iou
 from igavatar.metrics.report import (
@@ -166,7 +166,7 @@ def test_bad_inputs_fail_with_one_line_and_write_nothing(tiny_model, small_run, 
     shutil.copytree(tiny_model, moved)
     manifest = json.loads((moved / "manifest.json").read_text())
     manifest["data"]["dataset"] = str(tmp_path / "gone" / "data")
-    (moved / "manifest.json").write_text(json.dumps(manifest))
+    (moved / "manifest.json").write_text(json.dumps(sealed(manifest)))
     fails(["--model", str(moved)], 2, "data.dataset", "--dataset")
 
 

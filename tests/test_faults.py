@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from igavatar.artifacts.manifest import read_artifact
+from igavatar.artifacts.manifest import read_artifact, sealed
 from igavatar_cli.main import app
 from tests.conftest import write_tiny_capture
 
@@ -259,7 +259,7 @@ def test_a_truncated_npz_with_a_rewritten_hash_is_a_corrupt_artifact(cli_runner,
         if output["path"] == "weights.npz":
             output["sha256"] = hashlib.sha256(weights.read_bytes()).hexdigest()
             output["bytes"] = weights.stat().st_size
-    (own_model / "manifest.json").write_text(json.dumps(manifest))
+    (own_model / "manifest.json").write_text(json.dumps(sealed(manifest)))
     _one_error_line(cli_runner.invoke(app, ["validate", str(own_model)]), 3, "weights.npz", "corrupt model artifact", "igavatar train")
     _one_error_line(cli_runner.invoke(app, _export_args(own_model, tmp_path / "mesh")), 3, "corrupt model artifact")
 

@@ -25,6 +25,8 @@ from igavatar.errors import ArtifactError
 from schemas import load_schema
 
 MANIFEST_NAME = "manifest.json"
+#: The manifest field holding the sha256 of all its other fields (see `sealed`).
+SEAL_KEY = "manifest_sha256"
 
 #: Current MAJOR.MINOR layout version of each artifact kind; readers refuse another MAJOR.
 SCHEMA_VERSIONS: dict[str, str] = {
@@ -162,10 +164,21 @@ def build_manifest(
         "peak_memory": dict(peak_memory or {}),
         "data": data,
     }
+    manifest = sealed(json.loads(json.dumps(manifest, default=str)))
     validate_against("manifest", manifest, f"{directory}/{MANIFEST_NAME}")
     validate_against(artifact, data, f"{directory}/{MANIFEST_NAME} (data)")
-    (Path(directory) / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
+    (Path(directory) / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
+
+
+def _content_sha256(manifest: dict) -> str:
+    return sha256_json({key: value for key, value in manifest.items() if key != SEAL_KEY})
+
+
+def sealed(manifest: dict) -> dict:
+    """The manifest with its seal: the sha256 of every other field, so that an edit of any of them
+    (config.max_size, data.splits) is noticed as the file hashes notice an edited file."""
+    return {**{key: value for key, value in manifest.items() if key != SEAL_KEY}, SEAL_KEY: _content_sha256(manifest)}
 
 
 def read_manifest(directory: Path) -> dict:
@@ -219,6 +232,10 @@ def read_artifact(directory: Path, expected: str | None = None, *, check_hashes:
             f"igavatar {__version__} (needs {current_major}.x); re-run `{maker}`"
         )
     validate_against(kind, manifest["data"], f"{directory / MANIFEST_NAME} (data)")
+    # Artifacts written before manifests were sealed have no seal: their file hashes are still checked.
+    if check_hashes and SEAL_KEY in manifest and manifest[SEAL_KEY] != _content_sha256(manifest):
+        raise ArtifactError(f"{directory / MANIFEST_NAME}: was edited after it was written (its fields no longer match "
+                            f"its {SEAL_KEY}); re-run `{maker}`, or restore the original manifest.json")
     if check_hashes:
         for output in manifest["outputs"]:
             path = directory / output["path"]
@@ -232,6 +249,22 @@ def read_artifact(directory: Path, expected: str | None = None, *, check_hashes:
             if problem is not None:
                 raise ArtifactError(f"{path}: corrupt {kind} artifact file ({problem}); re-run `{maker}`")
     return manifest
+
+
+#: Files a desktop's file browser leaves in any folder it shows: not the user's work.
+DESKTOP_LITTER = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
+
+
+def unlisted_files(directory: Path, manifest: dict) -> list[str]:
+    """Files under an artifact directory that its manifest does not list (relative posix paths).
+
+    Someone put them there after the artifact was written (a .blend file, renders); replacing the
+    artifact would delete them. Desktop litter (.DS_Store, Thumbs.db) does not count.
+    """
+    listed = {output["path"] for output in manifest["outputs"]} | {MANIFEST_NAME}
+    return sorted(rel for rel in (p.relative_to(directory).as_posix() for p in Path(directory).rglob("*")
+                                  if p.is_file() or p.is_symlink())
+                  if rel not in listed and rel.rsplit("/", 1)[-1] not in DESKTOP_LITTER)
 
 
 def container_problem(path: Path) -> str | None:

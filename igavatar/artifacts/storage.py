@@ -10,6 +10,7 @@ are translated; any other OSError is a bug or a hardware fault and keeps its tra
 from __future__ import annotations
 
 import errno
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,8 +33,19 @@ def storage_message(exc: OSError, where: Path) -> str | None:
     if exc.errno not in _FIXABLE:
         return None
     what, fix = _FIXABLE[exc.errno]
-    path = exc.filename if exc.filename is not None else where
+    path = where if exc.filename is None else _as_final_path(str(exc.filename))
     return f"{path}: {what}; {fix}"
+
+
+#: A temporary sibling's name as igavatar.artifacts.atomic makes it: `.NAME.tmp-<pid>-<random>`.
+_TEMPORARY = re.compile(r"^\.(.+)\.(?:tmp|old)-(?:\d+-)?[A-Za-z0-9_]+$")
+
+
+def _as_final_path(filename: str) -> str:
+    """A path inside an artifact's temporary directory, named as it would be once in place: the
+    user knows `run/mesh/canonical.ply`, not `run/.mesh.tmp-4121-x8a2/canonical.ply`."""
+    parts = Path(filename).parts
+    return str(Path(*(_TEMPORARY.sub(r"\1", part) for part in parts))) if parts else filename
 
 
 @contextmanager

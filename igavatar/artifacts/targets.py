@@ -3,7 +3,8 @@
     check_output_target(Path("run/mesh"), "mesh", inputs=[Path("run/model")])   # UnsafeOutputError if not
 
 An output path may be replaced when it does not exist, is an empty directory, or is a directory
-whose `manifest.json` validates as an artifact of the kind being written. Anything else (a file,
+whose `manifest.json` validates as an artifact of the kind being written and which holds no file
+that manifest does not list. Anything else (a file, files added to an artifact,
 a folder of the user's, an artifact of another kind, one of the command's inputs, a folder that
 contains an input or lies inside one) is refused with one line saying what is there and how to
 proceed. There is no option that deletes a non-artifact: the user deletes it, or picks another path.
@@ -14,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from igavatar.artifacts.manifest import PRODUCED_BY, read_manifest
+from igavatar.artifacts.manifest import PRODUCED_BY, read_manifest, unlisted_files
 from igavatar.errors import ArtifactError, UnsafeOutputError
 
 
@@ -72,4 +73,11 @@ def check_output_target(target: Path, kind: str, inputs: Iterable[Path] = ()) ->
         raise UnsafeOutputError(
             f"--out {target}: holds a {manifest['artifact']} artifact (made by `{PRODUCED_BY[manifest['artifact']]}`), "
             f"not a {kind}; {how}"
+        )
+    extra = unlisted_files(target, manifest)
+    if extra:
+        shown = ", ".join(extra[:3]) + (f" and {len(extra) - 3} more" if len(extra) > 3 else "")
+        raise UnsafeOutputError(
+            f"--out {target}: the {kind} artifact there also holds files it did not write ({shown}); replacing it "
+            f"would delete them: move them out of {target}, or give another --out"
         )

@@ -76,6 +76,12 @@ class DatasetFrames:
         return DatasetFrames(**values)
 
 
+#: frames.npz's arrays and their shapes (N frames, J joints, pose_dim P).
+_FRAME_SHAPES = {"frame_names": ("N",), "K": ("N", 3, 3), "w2c": ("N", 4, 4), "bone_transforms": ("N", "J", 4, 4),
+                 "pose_condition": ("N", "P"), "posed_boxes": ("N", 2, 3), "posed_joints": ("N", "J", 3),
+                 "is_train": ("N",), "is_test": ("N",)}
+
+
 @dataclass(frozen=True, eq=False)
 class DatasetArtifact(ManifestFacts):
     """A checked dataset artifact: its directory, manifest and subject; frames read on demand."""
@@ -128,8 +134,7 @@ class DatasetArtifact(ManifestFacts):
     def frames(self) -> DatasetFrames:
         """Every frame of frames.npz; ArtifactError naming the file and missing keys."""
         path = self.path / FRAMES_FILE
-        keys = ("frame_names", *(f.name for f in fields(DatasetFrames) if f.name != "names"))
-        arrays = read_npz(path, keys, "the frames")
+        arrays = read_npz(path, _FRAME_SHAPES, "the frames", sizes={"J": self.subject.n_joints, "P": self.pose_dim})
         names = tuple(str(n) for n in arrays.pop("frame_names"))
         return DatasetFrames(names=names, **arrays)
 

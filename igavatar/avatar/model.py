@@ -16,6 +16,7 @@ import torch
 
 from igavatar.artifacts.manifest import read_artifact
 from igavatar.avatar.facts import ManifestFacts
+from igavatar.errors import ArtifactError
 from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
 from igavatar.body.bones import skeleton_kind
 from igavatar.body.motions import SKELETON_KINDS, body_to_world
@@ -132,6 +133,19 @@ class ModelArtifact(ModelManifest):
         return PosedAvatar.of(self.avatar, torch.as_tensor(bone_transforms).float(), torch.as_tensor(pose_condition).float())
 
 
+def _load_weights(module: torch.nn.Module, weights: dict, key: str, path: Path) -> None:
+    """module.load_state_dict(weights[key]); ArtifactError naming the file and the tensors that do
+    not fit the model its manifest describes (an edited file, re-hashed), instead of a traceback."""
+    if not isinstance(weights.get(key), dict):
+        raise ArtifactError(f"{path}: the {key} weights are missing; re-run `igavatar train`")
+    try:
+        module.load_state_dict(weights[key])
+    except (RuntimeError, KeyError) as error:
+        detail = "; ".join(line.strip() for line in str(error).splitlines()[1:4]) or str(error)
+        raise ArtifactError(f"{path}: the {key} weights do not fit the model its manifest describes ({detail}); "
+                            "re-run `igavatar train`") from None
+
+
 def load_model(path: Path, device: torch.device | str = "cpu") -> ModelArtifact:
     """Read and check a model artifact, rebuild its Avatar and occupancy grid."""
     path = Path(path)
@@ -140,9 +154,9 @@ def load_model(path: Path, device: torch.device | str = "cpu") -> ModelArtifact:
     subject = SubjectArrays.read(path / SUBJECT_FILE)
     avatar = build_avatar(config, subject, manifest["data"]["pose_dim"])
     weights = load_state(path / "weights.npz")
-    avatar.load_state_dict(weights["avatar"])
     box = avatar.canonical_box
     grid = OccupancyGrid(box[0], box[1], resolution=config.occupancy_resolution)
-    grid.load_state_dict(weights["canonical_grid"])
+    for module, key in ((avatar, "avatar"), (grid, "canonical_grid")):
+        _load_weights(module, weights, key, path / "weights.npz")
     avatar.eval()
     return ModelArtifact(path, manifest, config, avatar.to(device), grid.to(device), subject)

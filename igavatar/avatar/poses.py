@@ -148,7 +148,8 @@ def _refined_frames(model: ModelArtifact, dataset_path: Path, names: list[str]) 
     trained_on = [record.get("sha256") for record in model.manifest["inputs"] if record.get("artifact") == "dataset"]
     if sha256_file(dataset_path / MANIFEST_NAME) not in trained_on:
         return {}
-    refined = read_npz(refined_file, ("frame_names", "bone_transforms"), "refined poses", "re-run `igavatar train`")
+    refined = read_npz(refined_file, {"frame_names": ("N",), "bone_transforms": ("N", "J", 4, 4)}, "refined poses",
+                       "re-run `igavatar train`", sizes={"J": model.subject.n_joints})
     by_name = {str(name): i for i, name in enumerate(refined["frame_names"])}
     transforms = torch.from_numpy(refined["bone_transforms"]).float()
     return {slot: transforms[by_name[name]] for slot, name in enumerate(names) if name in by_name}

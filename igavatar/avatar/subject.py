@@ -15,8 +15,10 @@ from igavatar.artifacts.npz import read_npz
 from igavatar.body.skeleton import Skeleton
 
 SUBJECT_FILE = "subject.npz"
-_KEYS = ("parents", "rest_joints", "canonical_joints", "canonical_rotations", "joint_names", "init_bones",
-         "skinning_grid", "grid_box_min", "grid_box_max", "canonical_box")
+#: Every array of subject.npz and its shape (J joints, B seed bones, a D x H x W grid).
+_SHAPES = {"parents": ("J",), "rest_joints": ("J", 3), "canonical_joints": ("J", 3), "canonical_rotations": ("J", 3, 3),
+           "joint_names": ("J",), "init_bones": ("B",), "skinning_grid": ("J", "D", "H", "W"),
+           "grid_box_min": (3,), "grid_box_max": (3,), "canonical_box": (2, 3)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,7 +48,7 @@ class SubjectArrays:
     @classmethod
     def read(cls, path: Path) -> SubjectArrays:
         """Read subject.npz; ArtifactError naming the file and the missing keys."""
-        arrays: dict = read_npz(Path(path), _KEYS, "the subject arrays")
+        arrays: dict = read_npz(Path(path), _SHAPES, "the subject arrays")
         arrays["joint_names"] = tuple(str(n) for n in arrays["joint_names"])
         return cls(**arrays)
 

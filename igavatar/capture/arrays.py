@@ -89,3 +89,31 @@ def scalar_of(path: Path, data: Mapping[str, object], key: str) -> float:
     if raw.dtype.kind not in "fiu" or raw.size != 1 or not np.isfinite(raw).all():
         raise InputError(f"{path}: key '{key}' has shape {tuple(raw.shape)} and dtype {raw.dtype}, expected one number")
     return float(raw.reshape(()))
+
+
+def bad_intrinsics(K: np.ndarray, height: int, width: int) -> tuple[np.ndarray, str] | None:
+    """The frames whose intrinsics cannot be a pinhole camera's for this image size, and why.
+
+    Args:
+        K: (N, 3, 3) intrinsics in pixels; height, width: the image size they are for.
+    Returns:
+        None when every frame's K is fine, else ((N,) bool of the bad frames, the reason). A
+        negative focal length would mirror the image: preprocessing would still run and silently
+        take the subject for loose clothing (issue 37). A principal point more than half the image
+        outside it is a K for another image size.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    if not np.all(np.isfinite(K)):
+        return ~np.all(np.isfinite(K), axis=(-2, -1)), "intrinsics hold NaN or infinite values"
+    focal = K[:, [0, 1], [0, 1]]
+    if np.any(focal <= 0):
+        return np.any(focal <= 0, axis=-1), "a focal length K[0, 0] or K[1, 1] is not positive (it must be > 0 pixels)"
+    last_row = ~np.all(np.isclose(K[:, 2], [0, 0, 1], atol=1e-6), axis=-1)
+    if last_row.any():
+        return last_row, "the last row of K is not [0, 0, 1]"
+    cx, cy = K[:, 0, 2], K[:, 1, 2]
+    outside = (cx < -0.5 * width) | (cx > 1.5 * width) | (cy < -0.5 * height) | (cy > 1.5 * height)
+    if outside.any():
+        return outside, (f"the principal point (K[0, 2], K[1, 2]) lies far outside the {width}x{height} image: "
+                         "K is for another image size")
+    return None

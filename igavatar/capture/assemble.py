@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from igavatar.artifacts.manifest import first_schema_error
-from igavatar.capture.capture_v1 import POSE_LAYOUTS, CaptureV1, _check_shape
+from igavatar.capture.arrays import bad_intrinsics
+from igavatar.capture.capture_v1 import POSE_LAYOUTS, CaptureV1, _at_frame, _check_shape
 from igavatar.errors import InputError
 
 
@@ -88,10 +89,11 @@ def assemble_capture(parts: CaptureParts) -> CaptureV1:
         raise InputError(
             f"{where}: cameras have K {K.shape} and w2c {w2c.shape}, expected ({n_frames}, 3, 3) and ({n_frames}, 4, 4)"
         )
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(w2c))):
-        raise InputError(f"{where}: camera intrinsics or extrinsics hold NaN or infinite values")
-    if np.any(K[:, 0, 0] <= 0) or np.any(K[:, 1, 1] <= 0):
-        raise InputError(f"{where}: intrinsics with a non-positive focal length (K[0, 0], K[1, 1] must be > 0)")
+    if not np.all(np.isfinite(w2c)):
+        raise InputError(f"{where}: camera extrinsics hold NaN or infinite values")
+    bad = bad_intrinsics(K, parts.height, parts.width)
+    if bad is not None:
+        raise InputError(f"{where}: {bad[1]}{_at_frame(frames, bad[0])}")
     if not np.allclose(w2c[:, 3], [0, 0, 0, 1], atol=1e-6):
         raise InputError(f"{where}: a world-to-camera matrix whose last row is not [0, 0, 0, 1]")
     rotations = w2c[:, :3, :3]

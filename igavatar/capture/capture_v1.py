@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from igavatar.artifacts.manifest import first_schema_error
-from igavatar.capture.arrays import read_npz
+from igavatar.capture.arrays import bad_intrinsics, read_npz
 from igavatar.errors import InputError
 
 CAPTURE_FILE = "capture.json"
@@ -115,6 +115,14 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
     return read_npz(path)
 
 
+def _image_ext_hint(image_dir: Path, frame: str, ext: str) -> str:
+    """'; the images are .jpg: set "image_ext": ".jpg" in capture.json' when another suffix is there."""
+    for other in (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG"):
+        if other != ext and (image_dir / f"{frame}{other}").is_file():
+            return f"; the images there are {other} files: set \"image_ext\": \"{other}\" in {CAPTURE_FILE}"
+    return ""
+
+
 def _at_frame(frames: list[str], bad: np.ndarray) -> str:
     """' at frame NAME (index i; k frames in all)' for the first frame whose entries of `bad` are set."""
     per_frame = np.asarray(bad).reshape(len(frames), -1).any(axis=1)
@@ -195,6 +203,7 @@ def read_capture_v1(root: Path) -> CaptureV1:
     if missing_images:
         raise InputError(
             f"{root / 'images'}: {len(missing_images)} of {n_frames} images missing, e.g. {missing_images[0]}{ext}"
+            + _image_ext_hint(root / "images", missing_images[0], ext)
         )
     mask_dir = root / "masks"
     n_masks = sum((mask_dir / f"{f}.png").is_file() for f in frames) if mask_dir.is_dir() else 0
@@ -227,6 +236,9 @@ def read_capture_v1(root: Path) -> CaptureV1:
     height, width = int(np.asarray(cams["height"]).reshape(-1)[0]), int(np.asarray(cams["width"]).reshape(-1)[0])
     if height < 1 or width < 1:
         raise InputError(f"{cam_path}: height/width must be positive, got {height}x{width}")
+    bad = bad_intrinsics(K, height, width)
+    if bad is not None:
+        raise InputError(f"{cam_path}: key 'K': {bad[1]}{_at_frame(frames, bad[0])}")
     dist = None
     if "dist" in cams:
         dist = np.asarray(cams["dist"], dtype=np.float64).reshape(-1)
