@@ -22,6 +22,7 @@ from igavatar import __version__
 from igavatar.artifacts.storage import storage_message
 from igavatar.errors import IgavatarError, NotAvailableError, ResourceLimitError, StorageError, Terminated
 from igavatar.interrupts import signals_as_interrupts
+from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
 from stages.resources import tune_host_allocator
 
@@ -109,6 +110,8 @@ def _not_available(stage: str, issue_hint: str) -> None:
 
 @app.command()
 @user_errors
+@help_panels({INPUTS: ("out", "run_dir", "force"), QUALITY: ("resolution", "train_frames", "test_frames", "holdout_frames", "seed"),
+              "Subject": ("phenotype", "garment", "texture", "skeleton"), ADVANCED: ("anny_cache",), CONSOLE: ("quiet", "json_out")})
 def synth(
     out: Annotated[Optional[Path], typer.Option(help="Capture directory to write \\[default: RUN_DIR/capture].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
@@ -119,7 +122,7 @@ def synth(
         int, typer.Option(help="Frames of a second A-pose turn in the test split (in-distribution poses, new views).", min=0)
     ] = 0,
     phenotype: Annotated[
-        Optional[list[str]], typer.Option(help="Anny phenotype value, repeatable: --phenotype gender=0.2 --phenotype weight=0.7.")
+        Optional[list[str]], typer.Option(help="Anny phenotype value, repeatable: --phenotype gender=0.2 --phenotype weight=0.7 \\[default: the built-in subject's].")
     ] = None,
     garment: Annotated[str, typer.Option(help="Garment variant: shirt-trousers, dress, tight.")] = "shirt-trousers",
     texture: Annotated[str, typer.Option(help="Texture variant: stripes, checker, plain.")] = "stripes",
@@ -148,6 +151,11 @@ def synth(
 
 @app.command()
 @user_errors
+@help_panels({INPUTS: ("capture", "out", "run_dir", "input_format", "smpl_model", "force"),
+              "Video": ("video", "every", "max_frames", "test_every", "height", "focal", "fov"),
+              QUALITY: ("max_size",),
+              ADVANCED: ("shape_prior", "body_fit", "grid_resolution", "weight_smoothing", "weight_spread", "anny_cache"),
+              CONSOLE: ("quiet", "json_out")})
 def preprocess(
     capture: Annotated[Optional[Path], typer.Option(
         help="Capture directory to read, or with --video to write \\[default: RUN_DIR/capture].")] = None,
@@ -172,7 +180,7 @@ def preprocess(
         typer.Option(
             envvar="IGAVATAR_SMPL_MODEL",
             help="Your licensed SMPL model file (SMPL_NEUTRAL/MALE/FEMALE .pkl or .npz from smpl.is.tue.mpg.de), "
-            "needed by captures with SMPL poses; igavatar never ships or downloads it.",
+            "needed by captures with SMPL poses; igavatar never ships or downloads it \\[default: none].",
         ),
     ] = None,
     shape_prior: Annotated[str, typer.Option(
@@ -187,7 +195,7 @@ def preprocess(
     video: Annotated[Optional[Path], typer.Option(
         help="A clip of one person filmed by a still camera (mp4, mov, webm, avi, mkv, gif, or a folder of frames): "
              "igavatar finds the person (MediaPipe, offline), fits the Anny body to the whole clip and writes the "
-             "capture at --capture first, then the dataset.", rich_help_panel="Video")] = None,
+             "capture at --capture first, then the dataset \\[default: none: read --capture].", rich_help_panel="Video")] = None,
     every: Annotated[int, typer.Option(help="Video: keep every N-th frame.", min=1, rich_help_panel="Video")] = 1,
     max_frames: Annotated[int, typer.Option(
         help="Video: keep at most this many frames, evenly spaced (after dropping blurred and duplicate ones).",
@@ -229,6 +237,12 @@ def preprocess(
 
 @app.command()
 @user_errors
+@help_panels({INPUTS: ("dataset", "out", "run_dir", "resume", "force"), QUALITY: ("preset", "steps", "rays", "samples", "seed", "device"),
+              "Poses from a video": ("refine_poses", "pose_lr", "pose_prior_weight"),
+              ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
+                         "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
+                         "table_adam", "table_lr_factor"),
+              CONSOLE: ("quiet", "json_out")})
 def train(
     dataset: Annotated[Optional[Path], typer.Option(help="Dataset directory \\[default: RUN_DIR/dataset].")] = None,
     out: Annotated[Optional[Path], typer.Option(help="Model directory to write \\[default: RUN_DIR/model].")] = None,
@@ -236,33 +250,11 @@ def train(
     preset: Annotated[str, typer.Option(help="paper (GPU, the paper's settings), cpu (~10 min on 2 cores) or tiny (tests).")] = "cpu",
     steps: Annotated[Optional[int], typer.Option(help="Optimization steps \\[default: the preset's].")] = None,
     rays: Annotated[Optional[int], typer.Option("--rays", help="Rays per step \\[default: the preset's].")] = None,
-    samples: Annotated[Optional[int], typer.Option("--samples", help="Samples per ray before empty-space skipping.")] = None,
-    regularizer: Annotated[
-        Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe.")
-    ] = None,
-    smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works) \\[default: 1].")] = None,
-    smooth_pairs: Annotated[
-        Optional[str], typer.Option(help="L_smooth pairs: monotone (consecutive samples on a ray across which the SDF runs one way: no flip at a ridge of the distance field inside a thin part or in a gap, such as between the legs), valid (every consecutive pair, also across gaps; Eq. 9 read literally), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code) \\[default: monotone].")
-    ] = None,
-    smooth_form: Annotated[
-        Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight).")
-    ] = None,
-    smooth_band: Annotated[Optional[float], typer.Option(help="L_smooth along rays compares only samples whose SDF lies within this many meters of the zero level (the surface's normals, not those of the empty space under a crotch or an armpit) \\[default: the preset's].")] = None,
-    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts \\[default: the preset's].")] = None,
-    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~3 beta outside the zero level (meshes are made there, see export --surface-level), so a smaller cap means a sharper surface \\[default: the preset's].")] = None,
-    free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
-    body_inside_weight: Annotated[Optional[float], typer.Option(help="Weight of the body-inside term: at points inside the body model's naked template that the masks confirm, the SDF may not exceed the template's by more than 5 mm (keeps fingers and toes the images cannot resolve; a template that spills past masks of 1.5 cm pixels or finer, a fit too heavy, is not used; 0: off; no effect without a template) \\[default: the preset's: cpu 10, paper 0].")] = None,
-    body_inside_max_spill: Annotated[Optional[float], typer.Option(help="The body-inside term's fit check: the largest share of views (mean over its points) in which the template may fall outside the masks; fitted templates with exact masks give under 0.02, a fit 1 cm too heavy or masks 1 px too tight about 0.06 (1: never refuse) \\[default: 0.035].")] = None,
-    sdf_encoding: Annotated[
-        Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline).")
-    ] = None,
-    table_adam: Annotated[
-        Optional[str], typer.Option(help="Adam on the hash table: sparse (entries no sample reached stay put, as tiny-cuda-nn) or dense (torch's Adam: they drift on their momentum; the ablation).")
-    ] = None,
-    table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
+    samples: Annotated[Optional[int], typer.Option("--samples", help="Samples per ray before empty-space skipping \\[default: the preset's: cpu 96, paper 256].")] = None,
     seed: Annotated[int, typer.Option(help="Random seed (runs are deterministic on CPU).")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
     resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint of an interrupted run.")] = False,
+    force: Annotated[bool, typer.Option(help="Train even if --out holds a model of this dataset with these options.")] = False,
     refine_poses: Annotated[Optional[bool], typer.Option(
         "--refine-poses/--no-refine-poses",
         help="Optimise per-frame corrections of the training poses with the avatar, kept near the estimate; saved "
@@ -273,6 +265,29 @@ def train(
         help="Learning rate of the pose corrections \\[default: 0.002].")] = None,
     pose_prior_weight: Annotated[Optional[float], typer.Option(
         help="Weight that keeps the refined poses near the estimate \\[default: 0.01].")] = None,
+    regularizer: Annotated[
+        Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe \\[default: smooth].")
+    ] = None,
+    smooth_weight: Annotated[Optional[float], typer.Option(help="Weight of L_smooth (paper: 1.0; 0.5-1.5 works) \\[default: 1].")] = None,
+    smooth_pairs: Annotated[
+        Optional[str], typer.Option(help="L_smooth pairs: monotone (consecutive samples on a ray across which the SDF runs one way: no flip at a ridge of the distance field inside a thin part or in a gap, such as between the legs), valid (every consecutive pair, also across gaps; Eq. 9 read literally), adjacent (touching intervals only) or screen (same slot on neighbouring pixels, as the released code) \\[default: monotone].")
+    ] = None,
+    smooth_form: Annotated[
+        Optional[str], typer.Option(help="L_smooth along rays: eq9 (unsquared, per valid sample, Eq. 9) or released (squared, averaged over every slot, as the authors' code: far weaker at the same weight) \\[default: the preset's: released].")
+    ] = None,
+    smooth_band: Annotated[Optional[float], typer.Option(help="L_smooth along rays compares only samples whose SDF lies within this many meters of the zero level (the surface's normals, not those of the empty space under a crotch or an armpit) \\[default: the preset's].")] = None,
+    beta_init: Annotated[Optional[float], typer.Option(help="VolSDF beta (meters) when photometric training starts \\[default: the preset's].")] = None,
+    beta_final: Annotated[Optional[float], typer.Option(help="Cap that beta is annealed down to (meters): the rendered silhouette sits ~3 beta outside the zero level (meshes are made there, see export --surface-level), so a smaller cap means a sharper surface \\[default: the preset's].")] = None,
+    free_space_weight: Annotated[Optional[float], typer.Option(help="Weight of the visual-hull free-space term: canonical points the training masks rule out keep an SDF at least their distance to the hull (0: off) \\[default: the preset's].")] = None,
+    body_inside_weight: Annotated[Optional[float], typer.Option(help="Weight of the body-inside term: at points inside the body model's naked template that the masks confirm, the SDF may not exceed the template's by more than 5 mm (keeps fingers and toes the images cannot resolve; a template that spills past masks of 1.5 cm pixels or finer, a fit too heavy, is not used; 0: off; no effect without a template) \\[default: the preset's: cpu 10, paper 0].")] = None,
+    body_inside_max_spill: Annotated[Optional[float], typer.Option(help="The body-inside term's fit check: the largest share of views (mean over its points) in which the template may fall outside the masks; fitted templates with exact masks give under 0.02, a fit 1 cm too heavy or masks 1 px too tight about 0.06 (1: never refuse) \\[default: 0.035].")] = None,
+    sdf_encoding: Annotated[
+        Optional[str], typer.Option(help="hashgrid (the paper) or mlp (no hash grid: the slow-but-smooth baseline) \\[default: hashgrid].")
+    ] = None,
+    table_adam: Annotated[
+        Optional[str], typer.Option(help="Adam on the hash table: sparse (entries no sample reached stay put, as tiny-cuda-nn) or dense (torch's Adam: they drift on their momentum; the ablation) \\[default: sparse].")
+    ] = None,
+    table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -286,7 +301,7 @@ def train(
         samples_per_ray=samples, regularizer=regularizer, smooth_weight=smooth_weight, smooth_pairs=smooth_pairs, smooth_form=smooth_form, smooth_band=smooth_band,
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
-        seed=seed, device=device, resume=resume, refine_poses=refine_poses, pose_lr=pose_lr,
+        seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
@@ -296,9 +311,14 @@ def train(
 
 @app.command()
 @user_errors
+@help_panels({INPUTS: ("model", "out", "run_dir", "formats", "force"), QUALITY: ("resolution", "target_faces", "device"),
+              "Posed meshes": ("pose", "frame", "all_frames", "nonrigid", "posed_marching", "anny_cache"),
+              "Game engines and textures": ("influences", "texture_size", "textured_faces"),
+              ADVANCED: ("coarse_resolution", "min_component_ratio", "taubin_steps", "surface_level", "exr", "exr_size"),
+              CONSOLE: ("quiet", "json_out")})
 def export(
-    model: Annotated[Optional[Path], typer.Option(help="Model directory \\\\[default: RUN_DIR/model].")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\\\[default: RUN_DIR/mesh].")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Mesh directory to write \\[default: RUN_DIR/mesh].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     formats: Annotated[str, typer.Option(help="Comma-separated: ply, obj (vertex colors), glb (rigged, Y-up; with --pose animated).")] = "ply,obj,glb",
     resolution: Annotated[
@@ -306,10 +326,10 @@ def export(
     ] = 512,
     coarse_resolution: Annotated[int, typer.Option(help="Samples of the coarse pass that finds the surface box.", min=8)] = 64,
     min_component_ratio: Annotated[
-        Optional[float], typer.Option(help="Keep components with at least this fraction of the largest one's faces (default: only the largest).")
+        Optional[float], typer.Option(help="Keep components with at least this fraction of the largest one's faces \\[default: only the largest].")
     ] = None,
     taubin_steps: Annotated[int, typer.Option(help="Taubin smoothing iterations (0: none).", min=0)] = 0,
-    target_faces: Annotated[Optional[int], typer.Option(help="Decimate to at most this many faces.", min=4)] = None,
+    target_faces: Annotated[Optional[int], typer.Option(help="Decimate the PLY/OBJ to at most this many faces \\[default: no decimation].", min=4)] = None,
     influences: Annotated[
         int, typer.Option(help="Skin weights per vertex in the GLB: 4 (JOINTS_0; web engines) or 8 (JOINTS_0/1; Blender).")
     ] = 4,
@@ -318,9 +338,9 @@ def export(
     ] = 0,
     textured_faces: Annotated[int, typer.Option(help="Face budget of the textured mesh (quadric decimation).", min=4)] = 30_000,
     pose: Annotated[
-        Optional[Path], typer.Option(help="Pose the avatar: a pose .npz (capture v1 Anny poses.npz), a capture directory or a dataset artifact.")
+        Optional[Path], typer.Option(help="Pose the avatar: a pose .npz (capture v1 Anny poses.npz), a capture directory or a dataset artifact \\[default: none: the canonical mesh only].")
     ] = None,
-    frame: Annotated[Optional[int], typer.Option(help="Frame of --pose to export (default: 0).", min=0)] = None,
+    frame: Annotated[Optional[int], typer.Option(help="Frame of --pose to export \\[default: 0].", min=0)] = None,
     all_frames: Annotated[bool, typer.Option("--all", help="Export every frame of --pose.")] = False,
     nonrigid: Annotated[bool, typer.Option(help="Apply the pose-conditioned non-rigid offset to posed meshes.")] = True,
     posed_marching: Annotated[
@@ -331,7 +351,7 @@ def export(
         help="Where the mesh is made: silhouette (the level set where the renderer's silhouette lies, ~3 beta outside the SDF's zero level) or zero (the zero level).")] = "silhouette",
     exr_size: Annotated[int, typer.Option(help="Size of the EXR maps in pixels.", min=8)] = 512,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
-    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\\\[default: ~/.cache/anny].")] = None,
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory \\[default: ~/.cache/anny].")] = None,
     force: Annotated[bool, typer.Option(help="Redo even if the inputs and options are unchanged.")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
@@ -356,31 +376,37 @@ def export(
 
 @app.command()
 @user_errors
+@help_panels({INPUTS: ("motion", "model", "out", "run_dir", "anny_cache"),
+              "Motion": ("seconds", "fps", "frames", "travel", "seed"),
+              "Camera": ("camera", "camera_file", "dataset", "revolutions"),
+              QUALITY: ("resolution", "samples", "device"),
+              "Meshes and GLB": ("meshes", "mesh_resolution", "glb", "influences"),
+              CONSOLE: ("quiet", "json_out")})
 def animate(
     motion_arg: Annotated[
         Optional[str], typer.Argument(metavar="[MOTION]", help="Procedural motion (walk, turn, arm_raise, squat, turntable), a pose .npz (Anny, SMPL, AMASS, skeleton), a capture directory or a dataset.")
     ] = None,
-    motion: Annotated[Optional[str], typer.Option("--motion", help="Same as MOTION \\\\[default: walk].")] = None,
-    model: Annotated[Optional[Path], typer.Option(help="Model directory \\\\[default: RUN_DIR/model].")] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Animation directory to write \\\\[default: RUN_DIR/animation].")] = None,
+    motion: Annotated[Optional[str], typer.Option("--motion", help="Same as MOTION \\[default: walk].")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Animation directory to write \\[default: RUN_DIR/animation].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     seconds: Annotated[float, typer.Option(help="Length of a procedural motion in seconds.")] = 2.0,
-    fps: Annotated[Optional[float], typer.Option(help="Frames per second of the motion and the video \\\\[default: the pose file's, else 30].")] = None,
-    frames: Annotated[Optional[int], typer.Option(help="Number of frames (procedural: instead of --seconds; pose file: its first N).", min=1)] = None,
+    fps: Annotated[Optional[float], typer.Option(help="Frames per second of the motion and the video \\[default: the pose file's, else 30].")] = None,
+    frames: Annotated[Optional[int], typer.Option(help="Number of frames (procedural: instead of --seconds; pose file: its first N) \\[default: from --seconds, or the whole pose file].", min=1)] = None,
     travel: Annotated[bool, typer.Option(help="Let the walk move forward (~0.8 m/s) instead of walking in place.")] = False,
     seed: Annotated[int, typer.Option(help="Seed of the procedural motion (pace, amplitudes).")] = 0,
     camera: Annotated[str, typer.Option(help="turntable (orbits the subject), front (static) or capture (the dataset's first camera).")] = "turntable",
-    camera_file: Annotated[Optional[Path], typer.Option(help="npz with K (3,3), w2c (4,4) (or per frame), height, width; overrides --camera.")] = None,
-    dataset: Annotated[Optional[Path], typer.Option(help="Dataset for --camera capture \\\\[default: the one the model was trained on].")] = None,
+    camera_file: Annotated[Optional[Path], typer.Option(help="npz with K (3,3), w2c (4,4) (or per frame), height, width; overrides --camera \\[default: none: --camera].")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(help="Dataset for --camera capture \\[default: the one the model was trained on].")] = None,
     revolutions: Annotated[float, typer.Option(help="Turns of the turntable camera over the animation.")] = 1.0,
     resolution: Annotated[int, typer.Option(help="Longer image side in pixels.", min=8)] = 256,
-    samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\\\[default: the model's validation setting].", min=1)] = None,
+    samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\[default: the model's validation setting].", min=1)] = None,
     meshes: Annotated[bool, typer.Option(help="Also write the posed mesh of every frame (meshes/NNNN.ply).")] = False,
     mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh for --meshes and --glb.", min=16)] = 256,
     glb: Annotated[bool, typer.Option(help="Also write animation.glb: the rigged avatar (Y-up) playing the motion as a glTF animation clip.")] = False,
     influences: Annotated[int, typer.Option(help="Skin weights per vertex in the --glb file: 4 (web engines) or 8 (Blender).")] = 4,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
-    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory (Anny pose files) \\\\[default: ~/.cache/anny].")] = None,
+    anny_cache: Annotated[Optional[Path], typer.Option(help="Anny body-model cache directory (Anny pose files) \\[default: ~/.cache/anny].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -405,16 +431,20 @@ def animate(
 
 @app.command(name="eval")
 @user_errors
+@help_panels({INPUTS: ("model", "gt", "dataset", "out", "run_dir"),
+              QUALITY: ("geometry", "images", "image_scale", "image_frames", "samples", "device"),
+              ADVANCED: ("mesh_resolution", "surface_level", "surface_samples", "iou_points", "iou_open_meshes", "seed"),
+              CONSOLE: ("quiet", "json_out")})
 def eval_(
-    model: Annotated[Optional[Path], typer.Option(help="Model directory (default: RUN_DIR/model).")] = None,
+    model: Annotated[Optional[Path], typer.Option(help="Model directory \\[default: RUN_DIR/model].")] = None,
     gt: Annotated[
         Optional[Path],
-        typer.Option("--gt", help="Folder of ground-truth scans <frame>.ply|.obj (default: scans/ of the capture the dataset was made from)."),
+        typer.Option("--gt", help="Folder of ground-truth scans <frame>.ply|.obj \\[default: scans/ of the capture the dataset was made from]."),
     ] = None,
     dataset: Annotated[
-        Optional[Path], typer.Option(help="Dataset with the test frames (default: the one the model was trained on).")
+        Optional[Path], typer.Option(help="Dataset with the test frames \\[default: the one the model was trained on].")
     ] = None,
-    out: Annotated[Optional[Path], typer.Option(help="Report directory to write (default: RUN_DIR/report).")] = None,
+    out: Annotated[Optional[Path], typer.Option(help="Report directory to write \\[default: RUN_DIR/report].")] = None,
     run_dir: RunDir = DEFAULT_RUN_DIR,
     geometry: Annotated[bool, typer.Option("--geometry/--no-geometry", help="Compare posed meshes with the scans.")] = True,
     images: Annotated[bool, typer.Option("--images/--no-images", help="Render test frames and compare PSNR/SSIM.")] = True,
@@ -427,13 +457,13 @@ def eval_(
         bool, typer.Option(help="Estimate the IoU by ray parity even when a mesh is not watertight (flagged approximate).")
     ] = False,
     image_scale: Annotated[
-        Optional[float], typer.Option(help="Render test frames at this fraction of the dataset's image size (default: 1 on a GPU, 0.25 on CPU).")
+        Optional[float], typer.Option(help="Render test frames at this fraction of the dataset's image size; 1 scores at full size, as papers report \\[default: 1 on a GPU, 0.25 on CPU].")
     ] = None,
     samples: Annotated[
-        Optional[int], typer.Option("--samples", help="Samples per ray of the test renders (default: 128 on a GPU, 32 on CPU).", min=1)
+        Optional[int], typer.Option("--samples", help="Samples per ray of the test renders \\[default: 128 on a GPU, 32 on CPU].", min=1)
     ] = None,
     image_frames: Annotated[
-        Optional[int], typer.Option(help="Render this many test frames, evenly spaced; 0 = all (default: all on a GPU, 10 on CPU).", min=0)
+        Optional[int], typer.Option(help="Render this many test frames, evenly spaced; 0 = all \\[default: all on a GPU, 10 on CPU].", min=0)
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the surface samples and IoU points.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
@@ -458,6 +488,8 @@ def eval_(
 
 @app.command()
 @user_errors
+@help_panels({INPUTS: ("run_dir",), QUALITY: ("preset", "steps", "resolution", "train_frames", "test_frames", "device", "seed"),
+              CONSOLE: ("quiet", "json_out")})
 def demo(
     run_dir: RunDir = DEFAULT_RUN_DIR,
     preset: Annotated[Optional[str], typer.Option(help="Training preset \\[default: paper on a GPU, else cpu].")] = None,
@@ -499,6 +531,7 @@ def demo(
 
 @app.command()
 @user_errors
+@help_panels({CONSOLE: ("json_out",)})
 def validate(
     path: Annotated[Path, typer.Argument(help="An artifact directory (or a capture v1 directory).")],
     json_out: JsonOut = False,

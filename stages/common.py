@@ -4,7 +4,7 @@
     with clock("load_s"):
         model = load_model(path)
     if not options.force and unchanged(out, "mesh", config, inputs):
-        return skipped(out, "mesh")
+        return skipped("mesh", out)
     ... build_manifest(..., timings=clock.finish())
 """
 

@@ -44,7 +44,7 @@ from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_sampl
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
 from stages.kernels import build_kernels, resolve_device
-from stages.common import StageClock
+from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
 
@@ -81,6 +81,8 @@ class TrainOptions:
     seed: int = 0
     device: str = "auto"
     resume: bool = False
+    #: Train even when `out` holds a model of this dataset and these options (else: skipped).
+    force: bool = False
     #: None: the preset's (off: measured, it does not yet pay for its time; DESIGN.md "Video in").
     refine_poses: bool | None = None
     pose_lr: float | None = None
@@ -389,10 +391,14 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     clock = StageClock()
     dataset = read_dataset(Path(options.dataset))
     out = Path(options.out)
+    config = resolve_config(options)
+    # Read-only, so before the target check; a --resume always continues its checkpoint.
+    if not (options.force or options.resume) and unchanged(out, "model", config_to_json(config),
+                                                           [InputRecord(dataset.path, "dataset")]):
+        return skipped("model", out)
     check_output_target(out, "model", [dataset.path])  # before minutes of training, not after
     device = resolve_device(options.device)
     build_kernels(device, progress)
-    config = resolve_config(options)
     require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
                    f"--rays {config.rays_per_step} x --samples {config.samples_per_ray} (one training step)", device)
     torch.manual_seed(config.seed)

@@ -58,3 +58,46 @@ def test_preprocess_on_missing_directory(cli_runner, tmp_path):
     assert result.exit_code == 2
     assert "no such capture directory" in result.output
     assert not (tmp_path / "ds").exists()
+
+
+def _commands():
+    import typer.main
+
+    group = typer.main.get_command(app)
+    return {name: command for name, command in group.commands.items()}
+
+
+def _rendered_help(cli_runner, name: str) -> str:
+    result = cli_runner.invoke(app, [name, "--help"], env={"COLUMNS": "400", "TERMINAL_WIDTH": "400"})
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.mark.parametrize("name", sorted(_commands()))
+def test_every_option_shows_its_default_and_sits_in_a_panel(cli_runner, name):
+    """Typer shows `[default: X]` itself for a concrete default; an option whose default is None (the
+    preset's, the run directory's, off) must say what that means in its help, as `\\[default: ...]`
+    (rich reads a bare `[default ...]` as markup and drops it). Every option has a help panel."""
+    command = _commands()[name]
+    rendered = " ".join(_rendered_help(cli_runner, name).replace("│", " ").split())
+    assert "\\" not in rendered, rendered
+    for param in command.params:
+        if param.param_type_name != "option" or param.name == "help":
+            continue
+        assert getattr(param, "rich_help_panel", None), f"{name} --{param.name}: no help panel"
+        is_off_flag = param.is_flag and param.default is False and not param.secondary_opts
+        if param.default is None and not is_off_flag:
+            assert "[default:" in (param.help or ""), f"{name} {param.opts[0]}: default None not explained in its help"
+            hint = param.help[param.help.index("[default:"):].split("]")[0] + "]"
+            assert " ".join(hint.split()) in rendered, (name, param.opts[0], hint)
+        elif not is_off_flag and param.show_default is not False:
+            assert f"[default: " in rendered
+
+
+def test_the_first_panel_holds_the_inputs(cli_runner):
+    rendered = _rendered_help(cli_runner, "train")
+    panels = [line.split("─")[1].strip() for line in rendered.splitlines() if line.startswith("╭─")]
+    # Typer keeps --help alone in a first "Options" box; then come what most users set.
+    assert panels[:3] == ["Options", "Inputs and outputs", "Quality and time"] and panels[-1] == "Console", panels
+    assert panels.index("Advanced") == len(panels) - 2
+    assert rendered.index("--dataset") < rendered.index("--smooth-weight")

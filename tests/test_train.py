@@ -264,7 +264,12 @@ def test_shape_init_artifact_holds_the_initial_fit_and_a_rerun_matches_a_fresh_r
     assert init.keys() and all(f"sdf_field.{name}" in trained for name in init)
     assert not np.array_equal(init["encoding.table"], trained["sdf_field.encoding.table"]), "shape_init.npz holds the trained SDF"
 
-    run_train(TrainOptions(out=tmp_path / "reused", **options))  # reuses reused/shape_init.npz
+    # The same options again: skipped, the model untouched; --force trains, reusing reused/shape_init.npz.
+    before = (tmp_path / "reused" / "weights.npz").read_bytes()
+    summary = run_train(TrainOptions(out=tmp_path / "reused", **options))
+    assert summary["skipped"].startswith("inputs and options unchanged")
+    assert (tmp_path / "reused" / "weights.npz").read_bytes() == before
+    run_train(TrainOptions(out=tmp_path / "reused", force=True, **options))
     run_train(TrainOptions(out=tmp_path / "fresh", **options))
     again = flatten(load_state(tmp_path / "reused" / "weights.npz")["avatar"])
     fresh = flatten(load_state(tmp_path / "fresh" / "weights.npz")["avatar"])
