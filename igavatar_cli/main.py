@@ -20,7 +20,7 @@ from rich.console import Console
 
 from igavatar import __version__
 from igavatar.artifacts.storage import storage_message
-from igavatar.errors import IgavatarError, NotAvailableError, ResourceLimitError, StorageError, Terminated
+from igavatar.errors import IgavatarError, ResourceLimitError, StorageError, Terminated
 from igavatar.interrupts import signals_as_interrupts
 from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
@@ -102,10 +102,6 @@ def _print_summary(summary: dict, as_json: bool) -> None:
         return
     for key, value in summary.items():
         out_console.print(f"[bold]{key}[/]: {value}", highlight=False, soft_wrap=True)
-
-
-def _not_available(stage: str, issue_hint: str) -> None:
-    raise NotAvailableError(f"`igavatar {stage}` is not available yet in igavatar {__version__} ({issue_hint})")
 
 
 @app.command()

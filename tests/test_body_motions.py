@@ -20,7 +20,8 @@ from igavatar.body.motions import (
     turntable,
     walk,
 )
-from igavatar.body.rotations import axis_angle_to_matrix, rotation_angle
+from igavatar.body.rotations import axis_angle_to_matrix
+from tests.rotation_oracles import rotation_angle
 from igavatar.body.skeleton import NOMINAL_SMPL_REST_JOINTS, SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton, forward_kinematics
 from igavatar.errors import InputError
 

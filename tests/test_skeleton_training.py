@@ -20,7 +20,7 @@ from igavatar.body.capsules import capsule_radii, skeleton_capsules
 from igavatar.body.skeleton import Skeleton
 from igavatar.capture.capture_v1 import read_capture_v1
 from igavatar.capture.subject import subject_from_capture
-from igavatar.capture.subject_skeleton import skeleton_poses
+from igavatar.synth.skeleton_capture import bare_skeleton_poses
 from igavatar.training.shape_init import template_sdf_samples
 from stages.preprocess import PreprocessOptions, run_preprocess
 from stages.train import TrainOptions, run_train
@@ -30,7 +30,7 @@ def skeleton_capture_from(capture: Path, out: Path) -> Path:
     """A hand-made copy of a capture whose poses.npz is the bare skeleton of its body model."""
     shutil.copytree(capture, out)
     (out / "manifest.json").unlink(missing_ok=True)  # edited by hand: no longer the synth artifact
-    poses = skeleton_poses(subject_from_capture(read_capture_v1(capture)))
+    poses = _bare(subject_from_capture(read_capture_v1(capture)))
     (out / "poses.npz").unlink()
     np.savez(out / "poses.npz", **poses)
     meta = json.loads((out / "capture.json").read_text())
@@ -118,3 +118,8 @@ def test_a_bare_anny_skeleton_keeps_annys_world_axes(skeleton_run):
     np.testing.assert_array_equal(model.body_axes, body_to_world("anny"))
     head_up = gltf_axes(model.axes_kind) @ body_to_world("anny")[:, 1]  # the body's up, in glTF
     np.testing.assert_allclose(head_up, [0.0, 1.0, 0.0])
+
+
+def _bare(subject):
+    """The subject's skeleton and motion as capture v1 'skeleton' arrays (its body model dropped)."""
+    return bare_skeleton_poses(subject.skeleton, subject.local_rotations, subject.root_translation)

@@ -17,7 +17,8 @@ import pytest
 import torch
 
 from igavatar.artifacts.manifest import read_artifact, sha256_file
-from igavatar.body.rotations import invert_rigid, rotation_angle
+from igavatar.body.rotations import invert_rigid
+from tests.rotation_oracles import rotation_angle
 from igavatar.body.skeleton import SMPL_JOINT_NAMES, forward_kinematics, linear_blend_skinning
 from igavatar.body.smpl_model import load_smpl_model, smpl_star_pose
 from igavatar.capture.capture_v1 import read_capture_v1

@@ -12,7 +12,6 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
-import platform
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -293,8 +292,3 @@ def container_problem(path: Path) -> str | None:
         if head != b"\x89PNG\r\n\x1a\n" or b"IEND" not in tail:
             return "not a complete PNG (truncated or overwritten)"
     return None
-
-
-def host_description() -> str:
-    """One-line description of the host, for manifests and reports."""
-    return f"{platform.system()} {platform.machine()} python {platform.python_version()}"

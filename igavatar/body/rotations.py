@@ -61,26 +61,6 @@ def axis_angle_to_matrix(rotvec: torch.Tensor) -> torch.Tensor:
     )
 
 
-def quaternion_to_matrix(quaternion: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices of quaternions (w, x, y, z), normalized first.
-
-    Args:
-        quaternion: (..., 4), any non-zero norm.
-    Returns:
-        (..., 3, 3) rotation matrices.
-    """
-    q = quaternion / quaternion.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        (
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ),
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
-
-
 def matrix_to_quaternion(matrix: torch.Tensor) -> torch.Tensor:
     """Unit quaternions (w, x, y, z), w >= 0, of rotation matrices.
 
@@ -156,23 +136,6 @@ def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
     return quaternion_to_axis_angle(matrix_to_quaternion(matrix))
 
 
-def axis_angle_to_quaternion(rotvec: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions (w, x, y, z) of axis-angle vectors (..., 3) -> (..., 4)."""
-    theta_sq = (rotvec * rotvec).sum(-1)
-    small = theta_sq < _SMALL_ANGLE**2
-    theta = torch.where(small, torch.ones_like(theta_sq), theta_sq).sqrt()
-    sin_half_over_theta = torch.where(
-        small, 0.5 - theta_sq / 48.0, torch.sin(0.5 * theta) / theta
-    )
-    cos_half = torch.where(small, 1.0 - theta_sq / 8.0, torch.cos(0.5 * theta))
-    return torch.cat((cos_half[..., None], rotvec * sin_half_over_theta[..., None]), dim=-1)
-
-
-def rotation_angle(matrix: torch.Tensor) -> torch.Tensor:
-    """Rotation angles in [0, pi] of rotation matrices (..., 3, 3) -> (...,)."""
-    return matrix_to_axis_angle(matrix).norm(dim=-1)
-
-
 def rigid_matrix(rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
     """Homogeneous 4x4 matrices [R | t] from rotations (..., 3, 3) and translations (..., 3).
 
@@ -194,6 +157,3 @@ def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
     return rigid_matrix(rotation_t, translation)
 
 
-def transform_points(transform: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Apply 4x4 transforms (..., 4, 4) to points (..., 3) -> (..., 3), leading dims broadcast."""
-    return (transform[..., :3, :3] @ points[..., None])[..., 0] + transform[..., :3, 3]

@@ -63,7 +63,7 @@ def detect_layout(root: Path, requested: str = "auto") -> str:
     importers = {importer.name: importer for importer in _importers()}
     if requested != "auto":
         if requested not in importers:
-            raise InputError(f"--format {requested!r}: unknown; expected auto or one of {', '.join(importers)}")
+            raise InputError(f"--format {requested!r}: unknown; expected auto or one of {', '.join(layout_names())}")
         return requested
     if not root.exists():
         raise InputError(f"{root}: no such capture directory (make one with `igavatar synth` or `igavatar preprocess --video CLIP`, or pass --capture)")

@@ -15,7 +15,7 @@ import torch
 
 from igavatar.body.bones import skeleton_kind
 from igavatar.body.motions import body_to_world, semantic_joint_map
-from igavatar.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS, Skeleton
 from igavatar.capture.capture_v1 import CaptureV1
 from igavatar.capture.posed_subject import PosedSubject, major_bones
@@ -115,20 +115,3 @@ def skeleton_subject(capture: CaptureV1) -> PosedSubject:
         description={"skeleton_kind": kind or "unknown"},
         init_bones=major_bones(skeleton, kind) if kind is not None else longest_bones(skeleton),
     )
-
-
-def skeleton_poses(subject: PosedSubject) -> dict[str, np.ndarray]:
-    """The capture v1 'skeleton' poses.npz arrays of any posed subject (its body model dropped).
-
-    The inverse of skeleton_subject: a capture written with these arrays poses the same skeleton
-    the same way, with no template mesh (so its skinning and shape prior come from the bones).
-    Returns parents (J,) int64, rest_joints (J, 3), rotvecs (N, J, 3), transl (N, 3) float64 and
-    joint_names (J,) str.
-    """
-    return {
-        "parents": subject.skeleton.parents.astype(np.int64),
-        "rest_joints": np.asarray(subject.skeleton.rest_joints, dtype=np.float64),
-        "rotvecs": matrix_to_axis_angle(subject.local_rotations.double()).numpy(),
-        "transl": subject.root_translation.double().numpy(),
-        "joint_names": np.array(subject.skeleton.joint_names, dtype=np.str_),
-    }
