@@ -309,7 +309,7 @@ def train(
 @user_errors
 @help_panels({INPUTS: ("model", "out", "run_dir", "formats", "force"), QUALITY: ("resolution", "target_faces", "device"),
               "Posed meshes": ("pose", "frame", "all_frames", "nonrigid", "posed_marching", "anny_cache"),
-              "Game engines and textures": ("influences", "texture_size", "textured_faces"),
+              "Game engines and textures": ("glb_faces", "influences", "texture_size", "textured_faces"),
               ADVANCED: ("coarse_resolution", "min_component_ratio", "taubin_steps", "surface_level", "exr", "exr_size"),
               CONSOLE: ("quiet", "json_out")})
 def export(
@@ -333,6 +333,9 @@ def export(
         int, typer.Option(help="Also write textured/avatar.glb|.obj|.png: decimated, UV-unwrapped, color baked into an SxS texture (e.g. 1024 or 2048; 0: none).", min=0)
     ] = 0,
     textured_faces: Annotated[int, typer.Option(help="Face budget of the textured mesh (quadric decimation).", min=4)] = 30_000,
+    glb_faces: Annotated[int, typer.Option(
+        help="Face budget of canonical.glb, decimated for game engines and browsers (its distance to the full mesh "
+             "is in the manifest); 0 keeps the full mesh. PLY/OBJ stay at full resolution.", min=0)] = 50_000,
     pose: Annotated[
         Optional[Path], typer.Option(help="Pose the avatar: a pose .npz (capture v1 Anny poses.npz), a capture directory or a dataset artifact \\[default: none: the canonical mesh only].")
     ] = None,
@@ -361,6 +364,7 @@ def export(
         model=model or layout.model, out=out or layout.mesh, formats=parse_formats(formats), resolution=resolution,
         coarse_resolution=coarse_resolution, min_component_ratio=min_component_ratio, taubin_steps=taubin_steps,
         target_faces=target_faces, influences=influences, texture_size=texture_size, textured_faces=textured_faces,
+        glb_faces=glb_faces,
         pose=pose, frame=frame, all_frames=all_frames, nonrigid=nonrigid,
         posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
         surface_level=surface_level,

@@ -5,11 +5,13 @@
 
 Mesh layout (schema `mesh`, version 1; every position in meters):
     canonical.ply, canonical.obj   the canonical-space surface with sRGB vertex colors
-    canonical.glb                  rigged: the same mesh, the skeleton (joints named, bind pose = the
-                                   canonical pose), the 4 (--influences 8: 8, as JOINTS_0/1) largest
-                                   skinning weights per vertex and the vertex colors, in glTF's
-                                   +Y-up, +Z-forward frame (the capture's axes rotated in, see
-                                   igavatar.mesh.gltf); with --pose it also holds the exported frames
+    canonical.glb                  rigged, for engines and browsers: the same surface decimated to
+                                   --glb-faces (default 50k; its distance to the full mesh is in the
+                                   manifest), the skeleton (joints named, bind pose = the canonical
+                                   pose), the 4 (--influences 8: 8, as JOINTS_0/1) largest skinning
+                                   weights per vertex and the vertex colors, in glTF's +Y-up,
+                                   +Z-forward frame with the origin on the floor under the root joint
+                                   (igavatar.mesh.gltf); with --pose it also holds the exported frames
                                    as an animation (linear blend skinning only: no non-rigid offset)
     textured/avatar.glb|.obj|.mtl|.png   --texture-size S: the canonical mesh decimated to
                                    --textured-faces (pymeshlab quadric), UV-unwrapped (xatlas), the
@@ -76,8 +78,9 @@ from igavatar.avatar.surfaces import (
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight
 from igavatar.mesh.exr import write_exr
-from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, gltf_axes
+from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, floor_origin_offset, gltf_axes
 from igavatar.mesh.maps import CAMERA_FOV_DEG, frontal_camera, mesh_maps
+from igavatar.mesh.engine_mesh import DEFAULT_GLB_FACES, engine_mesh
 from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm, sparse_weight_sets
 from igavatar.mesh.texture import png_bytes
 from igavatar.mesh.textured_mesh import TexturedMesh, textured_mesh, textured_obj
@@ -112,6 +115,8 @@ class ExportOptions:
     influences: int = INFLUENCES
     texture_size: int = 0
     textured_faces: int = DEFAULT_TEXTURED_FACES
+    #: canonical.glb's face budget (0: the full mesh).
+    glb_faces: int = DEFAULT_GLB_FACES
     pose: Path | None = None
     frame: int | None = None
     all_frames: bool = False
@@ -131,7 +136,7 @@ class ExportOptions:
             "formats": list(self.formats), "resolution": self.resolution, "coarse_resolution": self.coarse_resolution,
             "min_component_ratio": self.min_component_ratio, "taubin_steps": self.taubin_steps,
             "target_faces": self.target_faces, "influences": self.influences,
-            "texture_size": self.texture_size, "textured_faces": self.textured_faces, "pose": None if self.pose is None else str(self.pose),
+            "texture_size": self.texture_size, "textured_faces": self.textured_faces, "glb_faces": self.glb_faces, "pose": None if self.pose is None else str(self.pose),
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
             "surface_level": self.surface_level,
@@ -175,6 +180,8 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError(f"--texture-size {options.texture_size}: expected 0 (no textured mesh) or 16..8192 pixels")
     if options.textured_faces < 4:
         raise InputError(f"--textured-faces {options.textured_faces}: expected at least 4")
+    if options.glb_faces and options.glb_faces < 4:
+        raise InputError(f"--glb-faces {options.glb_faces}: expected at least 4, or 0 for the full mesh")
     if options.exr_size < 8:
         raise InputError(f"--exr-size {options.exr_size}: expected at least 8 pixels")
     if options.pose is None:
@@ -251,9 +258,28 @@ class _Canonical:
     vertices: np.ndarray  # (V, 3) float32
     faces: np.ndarray  # (F, 3) int64
     colors: np.ndarray  # (V, 3) uint8 sRGB
-    skin_weights: np.ndarray | None  # (V, J) full grid weights, when a GLB is written
-    sparse_sets: dict | None  # {4: (joints, weights), 8: ...} top-k of skin_weights (sparse_weight_sets)
+    glb: _GlbMesh | None  # the GLB's (decimated) mesh, when a GLB is written
     record: dict  # the manifest's canonical record (without its files)
+
+
+@dataclass(frozen=True)
+class _GlbMesh:
+    """canonical.glb's mesh (`engine_mesh`), its colors and skinning weights (numpy)."""
+
+    vertices: np.ndarray  # (V', 3) float32
+    faces: np.ndarray  # (F', 3) int64
+    colors: np.ndarray  # (V', 3) uint8 sRGB
+    skin_weights: np.ndarray  # (V', J) full grid weights
+    sparse_sets: dict  # {4: (joints, weights), 8: ...} top-k of skin_weights (sparse_weight_sets)
+    record: dict  # engine_mesh's record
+
+    @classmethod
+    def of(cls, avatar, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, target_faces: int) -> _GlbMesh:
+        glb_vertices, glb_faces, record = engine_mesh(vertices, faces, target_faces)
+        if record["decimated"]:  # the color field at the new vertices, not an average of old ones
+            colors = vertex_colors(avatar, glb_vertices)
+        weights = vertex_skin_weights(avatar, glb_vertices)
+        return cls(glb_vertices, glb_faces, colors, weights, sparse_weight_sets(weights), record)
 
 
 def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, progress: ProgressSink) -> _Canonical:
@@ -272,10 +298,10 @@ def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, 
     on_box = vertices_on_box(avatar, vertices, options.resolution)
     with clock("colors_s"):
         colors = vertex_colors(avatar, vertices)
-    skin_weights = None
+    glb = None
     if "glb" in options.formats:
-        with clock("skin_weights_s"):
-            skin_weights = vertex_skin_weights(avatar, vertices)
+        with clock("glb_mesh_s"):
+            glb = _GlbMesh.of(avatar, vertices, faces, colors, options.glb_faces)
     record = {
         "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
         "watertight": watertight, "resolution": options.resolution, "coarse_resolution": options.coarse_resolution,
@@ -286,8 +312,7 @@ def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, 
         "vertices_on_box": int(on_box.sum()),
         "bounds": [vertices.min(axis=0).tolist(), vertices.max(axis=0).tolist()],
     }
-    return _Canonical(vertices, faces, colors, skin_weights,
-                      None if skin_weights is None else sparse_weight_sets(skin_weights), record)
+    return _Canonical(vertices, faces, colors, glb, record)
 
 
 def _export_frame(tmp: Path, model: ModelArtifact, canonical: _Canonical, poses: PoseSequence, k: int,
@@ -305,14 +330,16 @@ def _export_frame(tmp: Path, model: ModelArtifact, canonical: _Canonical, poses:
     for fmt in [f for f in options.formats if f in ("ply", "obj")] or ["ply"]:
         _write_mesh(tmp / "posed" / f"{name}.{fmt}", x_posed, canonical.faces, canonical.colors)
         record["files"].append(f"posed/{name}.{fmt}")
-    if canonical.sparse_sets is not None:
+    glb = canonical.glb
+    if glb is not None:
         # How far a glTF viewer's top-4 skinning of the GLB lands from full-weight LBS (no offset),
-        full_lbs = posed.skin(torch.from_numpy(canonical.vertices)).cpu().numpy()
-        joints, weights = canonical.sparse_sets[4]
-        gap = np.linalg.norm(lbs_sparse(canonical.vertices, joints, weights, transforms) - full_lbs, axis=1)
+        full_lbs = posed.skin(torch.from_numpy(glb.vertices)).cpu().numpy()
+        joints, weights = glb.sparse_sets[4]
+        gap = np.linalg.norm(lbs_sparse(glb.vertices, joints, weights, transforms) - full_lbs, axis=1)
         record["glb_top4_gap_mm"] = {"max": float(gap.max() * 1e3), "mean": float(gap.mean() * 1e3)}
-        # and how far top-4 and top-8 skinning land from igavatar's own posing (offset included).
-        record["glb_drift_mm"] = skin_drift_mm(canonical.vertices, canonical.sparse_sets, transforms, x_posed)
+        # and how far top-4 and top-8 skinning land from igavatar's own posing of the same vertices.
+        x_posed_glb = posed.pose_vertices(glb.vertices) if glb.record["decimated"] else x_posed
+        record["glb_drift_mm"] = skin_drift_mm(glb.vertices, glb.sparse_sets, transforms, x_posed_glb)
     if not options.posed_marching:
         return record, None, x_posed
     return record, _posed_marching(tmp, posed, name, x_posed, options, progress), x_posed
@@ -397,8 +424,8 @@ def _write_textured(tmp: Path, model: ModelArtifact, textured: TexturedMesh, opt
                     poses: PoseSequence | None) -> dict:
     """textured/avatar.png, .obj + .mtl and (with glb) the textured, rigged avatar.glb; their manifest record.
 
-    The OBJ is written in glTF's +Y-up frame like the GLB (both are for other tools; canonical.*
-    stay in the capture frame).
+    The OBJ is written in glTF's +Y-up frame with the origin on the floor, like the GLB (both are for
+    other tools; canonical.* stay in the capture frame).
     """
     folder = tmp / "textured"
     folder.mkdir()
@@ -407,7 +434,9 @@ def _write_textured(tmp: Path, model: ModelArtifact, textured: TexturedMesh, opt
     files = ["textured/avatar.png"]
     if "obj" in options.formats:
         axes = gltf_axes(model.axes_kind)
-        obj, mtl = textured_obj(textured.vertices.astype(np.float64) @ axes.T, textured.faces, textured.uv,
+        vertices_gltf = textured.vertices.astype(np.float64) @ axes.T
+        root_gltf = np.asarray(model.subject.canonical_joints[0], np.float64) @ axes.T
+        obj, mtl = textured_obj(vertices_gltf + floor_origin_offset(vertices_gltf, root_gltf), textured.faces, textured.uv,
                                 "avatar.mtl", "avatar.png")
         (folder / "avatar.obj").write_text(obj)
         (folder / "avatar.mtl").write_text(mtl)
@@ -434,13 +463,15 @@ def _write_canonical(tmp: Path, model: ModelArtifact, canonical: _Canonical, pos
     for fmt in (f for f in options.formats if f in ("ply", "obj")):
         _write_mesh(tmp / f"canonical.{fmt}", canonical.vertices, canonical.faces, canonical.colors)
         files.append(f"canonical.{fmt}")
-    if canonical.skin_weights is None:
+    glb = canonical.glb
+    if glb is None:
         return files, None
     motion = None if poses is None else (poses.local_rotations, poses.root_translation, poses.fps)
-    facts = write_model_glb(tmp / "canonical.glb", model, canonical.vertices, canonical.faces, canonical.colors,
-                            canonical.skin_weights, options.influences, motion=motion)
+    facts = write_model_glb(tmp / "canonical.glb", model, glb.vertices, glb.faces, glb.colors, glb.skin_weights,
+                            options.influences, motion=motion)
     files.append("canonical.glb")
-    return files, {"file": "canonical.glb", **facts, "drift_mm": None}
+    return files, {"file": "canonical.glb", **facts, "mesh": glb.record,
+                   "bytes": (tmp / "canonical.glb").stat().st_size, "drift_mm": None}
 
 
 def _summary(out: Path, device: torch.device, options: ExportOptions, canonical: _Canonical, files: list[str],

@@ -17,7 +17,9 @@ import pygltflib
 
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.capture.images import scale_intrinsics
-from igavatar.mesh.gltf import gltf_axes, gltf_pose, pose_glb_vertices, pose_relative_to_canonical, read_rigged_glb
+from igavatar.mesh.gltf import (
+    gltf_axes, gltf_pose, gltf_to_world, pose_glb_vertices, pose_relative_to_canonical, read_rigged_glb,
+)
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import (
     box_corners,
@@ -213,11 +215,13 @@ def test_animated_glb_channels_round_trip_the_motion(walk_animation, tiny_model)
     expected_rotations, expected_offset = gltf_pose(axes, relative, offset)
     for j, name in enumerate(names):
         np.testing.assert_allclose(_quaternion_matrix(keys[(name, "rotation")]), expected_rotations[:, j], atol=2e-5)
-    root_bind = np.asarray(model.subject.canonical_joints, np.float64)[0] @ axes.T
+    floor = read_rigged_glb(walk_animation / "animation.glb")["world_to_gltf_offset"]
+    root_bind = np.asarray(model.subject.canonical_joints, np.float64)[0] @ axes.T + floor
     np.testing.assert_allclose(keys[(names[0], "translation")], root_bind + expected_offset, atol=1e-5)
 
     # The clip's frame 1, skinned the glTF way, lands on igavatar's posed mesh within the reported drift.
-    posed_glb = pose_glb_vertices(walk_animation / "animation.glb", expected_rotations[1], expected_offset[1]) @ axes
+    posed_glb = gltf_to_world(pose_glb_vertices(walk_animation / "animation.glb", expected_rotations[1], expected_offset[1]),
+                              axes, read_rigged_glb(walk_animation / "animation.glb")["world_to_gltf_offset"])
     import trimesh
 
     posed = np.asarray(trimesh.load(walk_animation / "meshes" / "0001.ply", process=False).vertices)

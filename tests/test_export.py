@@ -21,6 +21,7 @@ from igavatar.mesh.exr import read_exr
 from igavatar.mesh.gltf import (
     gltf_axes,
     gltf_pose,
+    gltf_to_world,
     linear_to_srgb,
     pose_glb_vertices,
     pose_relative_to_canonical,
@@ -299,7 +300,10 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     geometry = next(iter(scene.geometry.values()))
     assert len(geometry.vertices) == len(canonical.vertices) and len(geometry.faces) == len(canonical.faces)
     axes = gltf_axes("anny")  # the GLB is Y-up: canonical vertices rotated from the capture's Z-up frame
-    np.testing.assert_allclose(geometry.vertices, canonical.vertices @ axes.T, atol=1e-6)
+    # ... and moved so that the origin is on the floor under the root joint.
+    offset_gltf = np.asarray(data["glb"]["world_to_gltf_offset"])
+    assert geometry.vertices[:, 1].min() == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(geometry.vertices, canonical.vertices @ axes.T + offset_gltf, atol=1e-5)
     # With a material, trimesh keeps COLOR_0 (linear, as glTF stores it) as a vertex attribute.
     colors = np.round(linear_to_srgb(geometry.visual.vertex_attributes["color"]) * 255)
     assert np.abs(colors - np.asarray(canonical.visual.vertex_colors)[:, :3]).max() <= 1
@@ -314,7 +318,7 @@ def test_glb_round_trip_and_posing_its_skeleton_matches_export_pose(small_run, t
     animation_rotations, animation_offset, _ = read_glb_animation(out / "canonical.glb")
     np.testing.assert_allclose(pose_glb_vertices(out / "canonical.glb", animation_rotations[0], animation_offset[0]),
                                glb_posed_gltf, atol=1e-4)
-    glb_posed = glb_posed_gltf @ axes  # back to the capture's world frame
+    glb_posed = gltf_to_world(glb_posed_gltf, axes, offset_gltf)  # back to the capture's world frame
 
     # Same vertices as LBS with the GLB's own top-4 weights under the model's bone transforms: < 0.1 mm.
     transforms = model.pose(rotations, translation).bone_transforms[0].double().numpy()
@@ -374,7 +378,8 @@ def test_eight_influences_and_drift_per_frame(small_run, tiny_model, tmp_path):
     assert data["glb"]["drift_mm"]["4"] == frame["glb_drift_mm"]["4"]["max"]
     # Measured from the files: the GLB's own 8-weight skinning against posed/<frame>.ply.
     rotations, offset, _ = read_glb_animation(out / "canonical.glb")
-    posed_glb = pose_glb_vertices(out / "canonical.glb", rotations[0], offset[0]) @ np.asarray(data["glb"]["world_to_gltf"])
+    posed_glb = gltf_to_world(pose_glb_vertices(out / "canonical.glb", rotations[0], offset[0]),
+                              data["glb"]["world_to_gltf"], data["glb"]["world_to_gltf_offset"])
     posed = np.asarray(trimesh.load(out / "posed" / f"{frame['name']}.ply", process=False).vertices)
     gap = np.linalg.norm(posed_glb - posed, axis=1) * 1e3
     assert gap.max() == pytest.approx(frame["glb_drift_mm"]["8"]["max"], abs=0.05)
@@ -404,7 +409,7 @@ def test_textured_export_bakes_the_color_field_and_rigs_the_decimated_mesh(small
     texel = glb["uv"] * 128 - 0.5
     sampled = cv2.remap(image, texel[:, 0].astype(np.float32)[None], texel[:, 1].astype(np.float32)[None],
                         cv2.INTER_LINEAR)[0]
-    canonical = glb["vertices"].astype(np.float64) @ np.asarray(glb["world_to_gltf"])  # back to the capture frame
+    canonical = gltf_to_world(glb["vertices"], glb["world_to_gltf"], glb["world_to_gltf_offset"])  # capture frame
     expected = surface_colors(load_model(tiny_model).avatar, canonical)
     assert np.median(np.abs(sampled - expected)) < 0.03
     np.testing.assert_allclose(glb["weights"].sum(axis=1), 1.0, atol=1e-6)
@@ -500,3 +505,37 @@ def test_posed_marching_is_recorded_beside_the_lbs_posed_mesh(small_run, tiny_mo
     # Both are the same surface where LBS is invertible: on average within a few marching-cubes cells.
     cell_mm = 1e3 * np.ptp(mesh.vertices, axis=0).max() / 23
     assert marched["mean_distance_to_posed_mm"] < 3 * cell_mm
+
+
+def test_the_default_glb_is_decimated_for_engines_and_stands_on_the_floor(small_run, tiny_model, tmp_path):
+    """canonical.glb: at most --glb-faces faces (the PLY keeps the full mesh), its measured distance
+    to the full mesh in the manifest, the origin on the floor under the root joint, and its drift
+    measured on its own vertices."""
+    from igavatar.mesh.engine_mesh import surface_deviation_mm
+
+    out = tmp_path / "mesh"
+    run_export(ExportOptions(model=tiny_model, out=out, formats=("ply", "glb"), resolution=RESOLUTION, glb_faces=300,
+                             pose=small_run / "dataset", frame=1, device="cpu"))
+    data = read_artifact(out, expected="mesh")["data"]
+    full = trimesh.load(out / "canonical.ply", process=False)
+    glb = read_rigged_glb(out / "canonical.glb")
+    record = data["glb"]["mesh"]
+    assert record["decimated"] and record["full_faces"] == len(full.faces) == data["canonical"]["faces"] > 300
+    assert glb["faces"].shape[0] == record["faces"] <= 300 and data["glb"]["bytes"] == (out / "canonical.glb").stat().st_size
+    # The reported deviation is the distance between the two surfaces, measured again here.
+    world = gltf_to_world(glb["vertices"], glb["world_to_gltf"], glb["world_to_gltf_offset"])
+    again = surface_deviation_mm((np.asarray(full.vertices), np.asarray(full.faces)), (world, glb["faces"]), 100_000)
+    assert 0 < record["deviation_mm"]["mean"] < 20 and again["mean"] == pytest.approx(record["deviation_mm"]["mean"], rel=0.05)
+    # On the floor: the lowest vertex at Y = 0, the root joint straight above the origin.
+    assert glb["vertices"][:, 1].min() == pytest.approx(0.0, abs=1e-6)
+    root = glb["joints_bind"][0]
+    assert abs(root[0]) < 1e-6 and abs(root[2]) < 1e-6 and root[1] > 0.3
+    # The drift is of the GLB's own vertices: as many as it has.
+    frame = data["posed"]["frames"][0]
+    assert set(frame["glb_drift_mm"]) == {"4", "8"} and frame["glb_drift_mm"]["4"]["max"] < 100
+
+    # --glb-faces 0 keeps the full mesh.
+    run_export(ExportOptions(model=tiny_model, out=tmp_path / "full", formats=("glb",), resolution=RESOLUTION,
+                             glb_faces=0, device="cpu"))
+    whole = read_artifact(tmp_path / "full", expected="mesh")["data"]["glb"]["mesh"]
+    assert not whole["decimated"] and whole["faces"] == whole["full_faces"] and whole["deviation_mm"]["max"] == 0.0

@@ -20,7 +20,9 @@ from igavatar.body.skeleton import bone_transforms, forward_kinematics, linear_b
 from igavatar.errors import InputError
 from igavatar.mesh.gltf import (
     gltf_axes,
+    floor_origin_offset,
     gltf_pose,
+    gltf_to_world,
     linear_to_srgb,
     pose_glb_vertices,
     pose_relative_to_canonical,
@@ -48,14 +50,15 @@ REST = np.array([
 AXES = gltf_axes("anny")
 
 
-def to_gltf(points: np.ndarray) -> np.ndarray:
-    """Points of the (Z-up) test frame in the GLB's (Y-up) frame."""
-    return np.asarray(points, dtype=np.float64) @ AXES.T
+def to_gltf(points: np.ndarray, avatar: Avatar) -> np.ndarray:
+    """Points of the (Z-up) test frame in the GLB's (Y-up) frame, origin on the floor under the root."""
+    return np.asarray(points, dtype=np.float64) @ AXES.T + avatar.floor_offset
 
 
 def glb_posed(path: Path, rotations: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """pose_glb_vertices of a pose given in the test frame, mapped back to the test frame."""
-    return pose_glb_vertices(path, *gltf_pose(AXES, rotations, translation)) @ AXES
+    offset = read_rigged_glb(path)["world_to_gltf_offset"]
+    return gltf_to_world(pose_glb_vertices(path, *gltf_pose(AXES, rotations, translation)), AXES, offset)
 
 
 def random_rotations(rng: np.random.Generator, shape: tuple[int, ...], scale: float) -> np.ndarray:
@@ -90,6 +93,11 @@ class Avatar:
         self.weights = weights / weights.sum(axis=1, keepdims=True)
         self.faces = rng.integers(0, 600, size=(900, 3))  # any valid index triples
         self.colors = rng.integers(0, 256, size=(600, 3)).astype(np.uint8)
+
+    @property
+    def floor_offset(self) -> np.ndarray:
+        """The translation the writer adds after the axes: the origin on the floor under the root."""
+        return floor_origin_offset(self.vertices.astype(np.float64) @ AXES.T, self.joints_canonical[0] @ AXES.T)
 
     def write(self, path: Path, **kwargs) -> Path:
         write_rigged_glb(
@@ -224,12 +232,12 @@ def test_round_trip_pygltflib_and_trimesh(tmp_path, avatar):
     assert doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["JOINTS_0"]]["componentType"] == 5121
 
     data = read_rigged_glb(path)
-    np.testing.assert_allclose(data["vertices"], to_gltf(avatar.vertices), atol=1e-6)
+    np.testing.assert_allclose(data["vertices"], to_gltf(avatar.vertices, avatar), atol=1e-6)
     np.testing.assert_array_equal(data["world_to_gltf"], AXES)
     np.testing.assert_array_equal(data["faces"], avatar.faces)
     assert data["joint_names"] == NAMES
     np.testing.assert_array_equal(data["parents"], PARENTS)
-    np.testing.assert_allclose(data["joints_bind"], to_gltf(avatar.joints_canonical), atol=1e-6)
+    np.testing.assert_allclose(data["joints_bind"], to_gltf(avatar.joints_canonical, avatar), atol=1e-6)
     # Colors are stored linear (glTF) and come back as the sRGB values written.
     np.testing.assert_array_equal(np.round(data["colors"] * 255).astype(np.uint8), avatar.colors)
     np.testing.assert_allclose(data["weights"].sum(axis=1), 1.0, atol=3e-7)
@@ -245,7 +253,7 @@ def test_round_trip_pygltflib_and_trimesh(tmp_path, avatar):
     (mesh,) = scene.geometry.values()
     assert mesh.vertices.shape == avatar.vertices.shape and mesh.faces.shape == avatar.faces.shape
     np.testing.assert_array_equal(mesh.faces, avatar.faces)
-    np.testing.assert_allclose(mesh.vertices, to_gltf(avatar.vertices), atol=1e-6)
+    np.testing.assert_allclose(mesh.vertices, to_gltf(avatar.vertices, avatar), atol=1e-6)
     plain = trimesh.load(path, process=False, skip_materials=True)
     (plain_mesh,) = plain.geometry.values()
     linear = srgb_to_linear(avatar.colors / 255.0)
@@ -325,7 +333,7 @@ def test_top_k_weights():
 def test_identity_pose_is_the_canonical_mesh(tmp_path, avatar):
     path = avatar.write(tmp_path / "avatar.glb")
     posed = pose_glb_vertices(path, np.tile(np.eye(3), (len(PARENTS), 1, 1)), np.zeros(3))
-    np.testing.assert_allclose(posed, to_gltf(avatar.vertices), atol=1e-6)
+    np.testing.assert_allclose(posed, to_gltf(avatar.vertices, avatar), atol=1e-6)
 
 
 def test_glb_skinning_matches_forward_kinematics(tmp_path, avatar):
@@ -387,7 +395,7 @@ def test_animation_keyframes_round_trip_and_pose(tmp_path, avatar):
     for n in range(frames):
         ours = avatar.our_posed(rotations[n], translation[n], weights4)
         glb = pose_glb_vertices(path, keys_rotations[n], keys_translation[n])
-        assert np.abs(glb - to_gltf(ours)).max() < 1e-4
+        assert np.abs(glb - to_gltf(ours, avatar)).max() < 1e-4
 
 
 def test_quaternion_hemisphere_is_continuous(tmp_path, avatar):

@@ -40,7 +40,8 @@ def write_model_glb(
             (N, 3) in world meters, fps).
         texture: optional (uv (V, 2), PNG bytes) for a textured primitive.
     Returns:
-        {"joints", "influences", "animation_frames", "fps", "up_axis", "world_to_gltf"}.
+        {"joints", "influences", "animation_frames", "fps", "up_axis", "world_to_gltf", "world_to_gltf_offset",
+        "origin"}; x_gltf = world_to_gltf @ x_world + world_to_gltf_offset.
     """
     subject = model.subject
     parents = np.asarray(subject.parents, dtype=np.int64)
@@ -54,7 +55,7 @@ def write_model_glb(
             subject.canonical_rotations, np.zeros(3), parents,
         )
         animation = (relative, offset, float(fps))
-    write_rigged_glb(
+    offset = write_rigged_glb(
         path, vertices, faces, colors, model.joint_names, parents,
         np.asarray(subject.canonical_joints, dtype=np.float64), skin_weights,
         world_to_gltf=axes, animation=animation, influences=influences, texture=texture,
@@ -63,5 +64,6 @@ def write_model_glb(
         "joints": len(model.joint_names), "influences": influences,
         "animation_frames": 0 if motion is None else int(motion[0].shape[0]),
         "fps": None if motion is None else float(motion[2]),
-        "up_axis": "+Y", "world_to_gltf": axes.tolist(),
+        "up_axis": "+Y", "world_to_gltf": axes.tolist(), "world_to_gltf_offset": [round(float(x), 6) for x in offset],
+        "origin": "on the floor under the root joint",
     }

@@ -13,9 +13,11 @@ rather than add a rotated root node because a parent node above the skeleton bec
 object or bone in Blender, is dropped or re-parented by engines that retarget humanoids (Unity's
 importer, three.js' SkeletonUtils), and would rotate the root translation channel in a frame the
 user never sees; baked, the armature's own nodes are in glTF's frame and the file is
-self-explanatory. The rotation is recorded in `asset.extras.igavatar.world_to_gltf` so tools can
-map back to the capture frame (`read_rigged_glb` returns it). The readers below return the
-file's (glTF) frame.
+self-explanatory. The origin is then moved to the floor under the root joint
+(`floor_origin_offset`), where humanoid assets have it. Rotation and offset are recorded in
+`asset.extras.igavatar` (`world_to_gltf`, `world_to_gltf_offset`: x_gltf = R x_world + offset) so
+tools can map back to the capture frame (`read_rigged_glb` returns both; `gltf_to_world`). The
+readers below return the file's (glTF) frame.
 
 The bind pose is the canonical pose: every joint node has identity rotation and the translation
 of its canonical offset from its parent (the root's: its canonical position), and each
@@ -261,8 +263,9 @@ def write_rigged_glb(
     animation: tuple[np.ndarray, np.ndarray, float] | None = None,
     influences: int = INFLUENCES,
     texture: tuple[np.ndarray, bytes] | None = None,
-) -> None:
-    """Write a skinned mesh whose bind pose is the canonical pose as one GLB (atomically).
+) -> np.ndarray:
+    """Write a skinned mesh whose bind pose is the canonical pose as one GLB (atomically); returns
+    the (3,) offset added after the axes (`floor_origin_offset`: the origin on the floor).
 
     Args:
         path: the .glb file to write.
@@ -332,6 +335,8 @@ def write_rigged_glb(
     # Bake glTF's axes into every position (see the module docstring for why not a root node).
     v = v @ axes.T
     joints_gltf = skeleton.rest_joints.astype(np.float64) @ axes.T
+    offset = floor_origin_offset(v, joints_gltf[0])
+    v, joints_gltf = v + offset, joints_gltf + offset
 
     normals = vertex_normals(v, f).astype(np.float64)
     # glTF requires unit normals; a vertex of degenerate faces only gets an arbitrary one.
@@ -414,7 +419,8 @@ def write_rigged_glb(
         images=images, textures=textures, samplers=samplers,
         asset=pygltflib.Asset(
             version="2.0", generator="igavatar",
-            extras={"igavatar": {"world_to_gltf": axes.tolist(), "influences": influences}},
+            extras={"igavatar": {"world_to_gltf": axes.tolist(), "world_to_gltf_offset": offset.tolist(),
+                                 "influences": influences}},
         ),
         scene=0,
         scenes=[pygltflib.Scene(name="avatar", nodes=[0, mesh_node])],
@@ -454,6 +460,23 @@ def write_rigged_glb(
     gltf.buffers = [pygltflib.Buffer(byteLength=len(builder.blob))]
     gltf.set_binary_blob(bytes(builder.blob))
     atomic_write_bytes(path, b"".join(gltf.save_to_bytes()))
+    return offset
+
+
+def floor_origin_offset(vertices_gltf: np.ndarray, root_gltf: np.ndarray) -> np.ndarray:
+    """(3,) translation that puts the origin on the floor under the root joint: the root's ground
+    projection at the lowest vertex's height (glTF frame, +Y up).
+
+    Humanoid assets (Mixamo, VRM, Ready Player Me) stand on Y = 0 with the origin between the
+    feet, so that an engine places them on the ground and turns them about their own axis; the
+    capture's origin (Anny's: the pelvis) would sink the avatar 0.8 m into the floor.
+    """
+    return -np.array([root_gltf[0], vertices_gltf[:, 1].min(), root_gltf[2]], dtype=np.float64)
+
+
+def gltf_to_world(points_gltf: np.ndarray, world_to_gltf: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(N, 3) points of an igavatar GLB back in the capture's frame (x_gltf = R x_world + offset)."""
+    return (np.asarray(points_gltf, np.float64) - np.asarray(offset, np.float64)) @ np.asarray(world_to_gltf, np.float64)
 
 
 def _add_animation(
@@ -690,16 +713,22 @@ def _read_skinned(gltf: pygltflib.GLTF2, blob: bytes, path: str | os.PathLike[st
         "joints": np.concatenate([read_accessor(gltf, blob, a).astype(np.int64) for a in joint_sets], axis=1),
         "weights": np.concatenate([read_accessor(gltf, blob, a).astype(np.float32) for a in weight_sets], axis=1),
         "world_to_gltf": _world_to_gltf(gltf),
+        "world_to_gltf_offset": _recorded(gltf, "world_to_gltf_offset", np.zeros(3)),
     }
 
 
 def _world_to_gltf(gltf: pygltflib.GLTF2) -> np.ndarray:
     """The igavatar writer's recorded world -> glTF rotation (identity for other files)."""
+    return _recorded(gltf, "world_to_gltf", np.eye(3))
+
+
+def _recorded(gltf: pygltflib.GLTF2, key: str, default: np.ndarray) -> np.ndarray:
+    """An array the igavatar writer recorded in asset.extras.igavatar (`default` for other files)."""
     extras = gltf.asset.extras or {}
     if isinstance(extras, str):
         extras = json.loads(extras)
-    recorded = extras.get("igavatar", {}).get("world_to_gltf") if isinstance(extras, dict) else None
-    return np.eye(3) if recorded is None else np.asarray(recorded, dtype=np.float64)
+    recorded = extras.get("igavatar", {}).get(key) if isinstance(extras, dict) else None
+    return default if recorded is None else np.asarray(recorded, dtype=np.float64)
 
 
 def pose_glb_vertices(

@@ -76,6 +76,13 @@ influences = [sum(1 for g in v.groups if g.weight > 0) for v in mesh.data.vertic
 report["max_influences"] = max(influences) if influences else 0
 dims = mesh.dimensions
 report["dimensions_xyz_m"] = [dims.x, dims.y, dims.z]
+# Where the avatar stands in the rest pose: the lowest vertex (the floor is Z = 0 in Blender) and the
+# horizontal centre of its feet.
+rest_world = [mesh.matrix_world @ v.co for v in mesh.data.vertices]
+report["rest_min_z_m"] = min(c.z for c in rest_world)
+report["rest_max_z_m"] = max(c.z for c in rest_world)
+low = [c for c in rest_world if c.z < report["rest_min_z_m"] + 0.05]
+report["feet_center_xy_m"] = [sum(c.x for c in low) / len(low), sum(c.y for c in low) / len(low)]
 
 textures = []
 for slot in mesh.material_slots:

@@ -4,9 +4,12 @@
         [--validator-dir DIR] [--out tests/benchmarks/results/interop] [--frames 0,5,10]
 
 Not part of the test suite, and it installs nothing. It:
-1. exports the model with `--texture-size 1024 --textured-faces 30000 --pose POSE --all` (canonical.glb:
-   rigged, vertex colors, the capture's poses as an animation; textured/avatar.glb: decimated,
-   textured, animated) twice, with 4 and with 8 influences, and runs `animate walk --glb`;
+1. exports the model with `--texture-size 1024 --textured-faces 30000 --pose POSE --all --glb-faces 0`
+   (canonical.glb: rigged, full resolution so that its vertices compare in order with posed/*.ply,
+   vertex colors, the capture's poses as an animation; textured/avatar.glb: decimated, textured,
+   animated) twice, with 4 and with 8 influences, once with export's defaults (the engine-sized
+   canonical.glb a user gets: its size, its distance to the full mesh, where it stands), and runs
+   `animate walk --glb`;
 2. runs the Khronos glTF validator (`npm install gltf-validator` in --validator-dir, then node) on
    every GLB and records errors/warnings/infos;
 3. if `blender` is on PATH (Debian: `apt-get install blender`), imports each GLB headless
@@ -35,10 +38,12 @@ import trimesh
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from provenance import command, commit  # noqa: E402
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
 from igavatar.geometry.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values  # noqa: E402
-from igavatar.mesh.gltf import read_rigged_glb  # noqa: E402
+from igavatar.mesh.gltf import gltf_to_world, read_rigged_glb  # noqa: E402
 from igavatar.mesh.maps import frontal_camera  # noqa: E402
 from igavatar.mesh.texture import sample_texture  # noqa: E402
 from stages.animate import AnimateOptions, run_animate  # noqa: E402
@@ -90,9 +95,10 @@ def blender_probe(glb: Path, frames: list[int], out: Path, render: bool) -> dict
     return report
 
 
-def to_blender(points: np.ndarray, world_to_gltf: np.ndarray) -> np.ndarray:
-    """Capture-frame points in Blender's frame: glTF's Y-up frame, then Blender's (x, -z, y) import."""
-    gltf = np.asarray(points, np.float64) @ np.asarray(world_to_gltf).T
+def to_blender(points: np.ndarray, glb_record: dict) -> np.ndarray:
+    """Capture-frame points in Blender's frame: glTF's Y-up frame (origin on the floor), then
+    Blender's (x, -z, y) import."""
+    gltf = np.asarray(points, np.float64) @ np.asarray(glb_record["world_to_gltf"]).T + glb_record["world_to_gltf_offset"]
     return np.stack((gltf[:, 0], -gltf[:, 2], gltf[:, 1]), axis=1)
 
 
@@ -102,7 +108,7 @@ def compare_frames(probe: dict, mesh_dir: Path, glb_record: dict, frame_names: l
     rows = []
     for k, index in enumerate(picked):
         posed = np.asarray(trimesh.load(mesh_dir / "posed" / f"{frame_names[index]}.ply", process=False).vertices)
-        ours = to_blender(posed, glb_record["world_to_gltf"])
+        ours = to_blender(posed, glb_record)
         local = np.fromfile(probe["vertex_files"][k], dtype=np.float64).reshape(-1, 3)
         matrix = np.asarray(probe["matrix_world"][k])
         theirs = local @ matrix[:3, :3].T + matrix[:3, 3]
@@ -138,7 +144,7 @@ def texture_psnr(mesh_dir: Path, body_axes: np.ndarray, size: int = 512) -> dict
     full = trimesh.load(mesh_dir / "canonical.ply", process=False)
     glb = read_rigged_glb(mesh_dir / "textured" / "avatar.glb")
     texture = cv2.cvtColor(cv2.imread(str(mesh_dir / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float32) / 255
-    world = glb["vertices"].astype(np.float64) @ glb["world_to_gltf"]  # back to the capture frame
+    world = gltf_to_world(glb["vertices"], glb["world_to_gltf"], glb["world_to_gltf_offset"])  # capture frame
     cameras = []
     for angle in (0.0, 90.0, 180.0, 270.0):
         turn = np.deg2rad(angle)
@@ -180,7 +186,7 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
     cameras = np.load(capture / "cameras.npz")
     model = load_model(model_path)
     glb = read_rigged_glb(mesh_dir / "textured" / "avatar.glb")
-    canonical_textured = glb["vertices"].astype(np.float64) @ glb["world_to_gltf"]
+    canonical_textured = gltf_to_world(glb["vertices"], glb["world_to_gltf"], glb["world_to_gltf_offset"])
     texture = cv2.cvtColor(cv2.imread(str(mesh_dir / "textured" / "avatar.png")), cv2.COLOR_BGR2RGB).astype(np.float64) / 255
     rows, panels = [], []
     views = [train[round(i * len(train) / 4)] for i in range(4)]  # the training turn: front, side, back, side
@@ -225,7 +231,8 @@ def capture_psnr(mesh_dir: Path, model_path: Path, capture: Path) -> dict:
 
 def markdown(report: dict) -> str:
     """The human-readable summary of a report (interop.md)."""
-    lines = ["# GLB interop check", "", f"Model `{report['model']}`, poses `{report['pose']}`.", "",
+    lines = ["# GLB interop check", "", f"Commit: `{report.get('commit', 'not recorded')}`. Command: `{report.get('command')}`", "",
+             f"Model `{report['model']}`, poses `{report['pose']}`.", "",
              "## Khronos glTF validator", "", "| file | errors | warnings | infos | hints |", "|---|---|---|---|---|"]
     for path, result in report["validator"].items():
         if isinstance(result, dict) and "numErrors" in result:
@@ -234,8 +241,8 @@ def markdown(report: dict) -> str:
         else:
             lines.append(f"| {path} | {result} | | | |")
     lines += ["", "## Blender (headless import)", "",
-              "| GLB | bones | vertices | max influences | texture | action frames | head above feet (m, Blender Z) | moved between keys (mm) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| GLB | bones | vertices | max influences | texture | action frames | head above feet (m, Blender Z) | moved between keys (mm) | lowest vertex Z (m) | feet centre XY (m) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for label, probe in report["blender"].items():
         if "failed" in probe or "skipped" in probe:
             lines.append(f"| {label} | {probe.get('skipped') or 'failed'} | | | | | | |")
@@ -245,7 +252,8 @@ def markdown(report: dict) -> str:
                             for t in probe.get("textures", [])) or "vertex colors"
         lines.append(f"| {label} | {probe.get('bones')} | {probe['vertices']} | {probe['max_influences']} | {texture} | "
                      f"{action.get('frame_range')} | {probe.get('head_above_feet_m', float('nan')):.3f} | "
-                     f"{probe.get('motion_between_keys_mm', 0):.0f} |")
+                     f"{probe.get('motion_between_keys_mm', 0):.0f} | {probe.get('rest_min_z_m', float('nan')):.4f} | "
+                     f"{', '.join(f'{x:.3f}' for x in probe.get('feet_center_xy_m', []))} |")
     lines += ["", "## Blender's skinned vertices vs `igavatar export --pose` (same frames)", "",
               "| GLB | frame | Blender vs igavatar max / mean (mm) | manifest drift max / mean (mm) |", "|---|---|---|---|"]
     for label, probe in report["blender"].items():
@@ -258,6 +266,15 @@ def markdown(report: dict) -> str:
     if walk:
         lines += ["", f"`animate walk --glb` (30 frames): drift max top-4 {walk['drift_mm']['4']:.1f} mm, "
                       f"top-8 {walk['drift_mm']['8']:.1f} mm over the frames."]
+    default = report.get("default_export")
+    if default:
+        mesh = default["glb"]["mesh"]
+        lines += ["", "## The default export (what a user gets)", "",
+                  f"canonical.glb: {mesh['faces']} faces, {mesh['vertices']} vertices, decimated from {mesh['full_faces']} "
+                  f"(canonical.ply keeps them), {default['bytes']['canonical.glb'] / 1e6:.2f} MB "
+                  f"(canonical.ply {default['bytes']['canonical.ply'] / 1e6:.2f} MB); distance to the full mesh "
+                  f"max {mesh['deviation_mm']['max']:.2f} mm, mean {mesh['deviation_mm']['mean']:.3f} mm; "
+                  f"origin {default['glb'].get('origin')}."]
     lines += ["", "## Texture", ""]
     for influences, export in report["exports"].items():
         textured = export["textured"]
@@ -332,9 +349,10 @@ def main() -> None:
     if pose is None:
         dataset = Path(model_manifest["inputs"][0]["path"])
         pose = Path(read_artifact(dataset, expected="dataset")["inputs"][0]["path"])
+        pose = pose.parent if pose.is_file() else pose  # a capture without a manifest is recorded by its capture.json
     if args.views and (pose / "capture.json").is_file():
         pose = capture_subset(pose, args.views, args.work / "capture_subset")
-    report: dict = {"model": str(args.model), "pose": str(pose), "exports": {}}
+    report: dict = {"commit": commit(), "command": command(), "model": str(args.model), "pose": str(pose), "exports": {}}
 
     glbs: list[Path] = []
     for influences in (4, 8):
@@ -343,6 +361,7 @@ def main() -> None:
         summary = run_export(ExportOptions(
             model=args.model, out=out, resolution=args.resolution, pose=pose, all_frames=True, influences=influences,
             texture_size=args.texture_size, textured_faces=args.textured_faces, force=not args.reuse, device="cpu",
+            glb_faces=0,  # the full mesh, so that Blender's vertices compare with posed/*.ply in order
         ))
         data = read_artifact(out, expected="mesh")
         report["exports"][str(influences)] = {
@@ -351,6 +370,15 @@ def main() -> None:
             "bytes": {p.name: p.stat().st_size for p in [out / "canonical.glb", out / "canonical.ply"]},
         }
         glbs += [out / "canonical.glb", out / "textured" / "avatar.glb"]
+    # The default export, as a user gets it: canonical.glb decimated for engines, on the floor.
+    default_dir = args.work / "mesh_default"
+    run_export(ExportOptions(model=args.model, out=default_dir, resolution=args.resolution, force=not args.reuse,
+                             device="cpu"))
+    default = read_artifact(default_dir, expected="mesh")["data"]
+    report["default_export"] = {"glb": default["glb"], "canonical_faces": default["canonical"]["faces"],
+                                "bytes": {p.name: p.stat().st_size for p in [default_dir / "canonical.glb",
+                                                                             default_dir / "canonical.ply"]}}
+    glbs.append(default_dir / "canonical.glb")
     started = time.perf_counter()
     if not (args.reuse and (args.work / "animation" / "animation.glb").is_file()):
         run_animate(AnimateOptions(model=args.model, out=args.work / "animation", motion="walk", frames=30, glb=True,
@@ -376,6 +404,8 @@ def main() -> None:
             report["blender"][f"{label}_{influences}"] = probe
             if probe.get("render"):
                 shutil.copy(probe["render"], args.out / "blender_textured_render.png")
+    report["blender"]["default_canonical"] = blender_probe(default_dir / "canonical.glb", [], args.work / "blender_default",
+                                                           render=False)
     report["blender"]["animation_walk"] = blender_probe(args.work / "animation" / "animation.glb", [0, 15, 29],
                                                         args.work / "blender_walk", render=False)
 
