@@ -33,6 +33,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from provenance import command, commit  # noqa: E402
 RESULTS = ROOT / "tests" / "benchmarks" / "results"
 
 #: Subjects: synth options (different phenotype, garment, texture, seed).
@@ -231,7 +233,8 @@ def run_subject(name: str, synth_args: list[str], args: argparse.Namespace) -> d
 
 def markdown(results: dict) -> str:
     """The tables of one benchmark run, per subject and frame group, step time relative to none."""
-    lines = [f"# Quality benchmark ({results['date']})", "", f"Command: `{results['command']}`", "",
+    lines = [f"# Quality benchmark ({results['date']})", "",
+             f"Commit: `{results.get('commit', 'not recorded')}`. Command: `{results['command']}`", "",
              f"Machine: {results['machine']}. Settings: {json.dumps(results['settings'])}", ""]
     for subject in results["subjects"]:
         rows = subject["rows"]
@@ -310,7 +313,7 @@ def main() -> None:
     import torch
 
     results = {
-        "date": datetime.date.today().isoformat(), "command": " ".join(["python", *sys.argv]),
+        "date": datetime.date.today().isoformat(), "commit": commit(), "command": command(),
         "machine": f"{platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}, {args.device}",
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "subjects": [],

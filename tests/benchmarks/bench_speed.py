@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_train import ensure_dataset  # noqa: E402
+from provenance import command, commit  # noqa: E402
 
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
@@ -343,7 +344,7 @@ def main() -> None:
     results["peak_ram_gb"] = peak_ram_bytes() / 2**30
     print(f"\npeak RAM of this process: {results['peak_ram_gb']:.2f} GB")
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2, default=str))
+        args.json.write_text(json.dumps({"commit": commit(), "command": command(), **results}, indent=2, default=str))
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ import trimesh
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
 from bench_quality import SUBJECTS  # noqa: E402
+from provenance import commit  # noqa: E402
 
 RESULTS = ROOT / "tests" / "benchmarks" / "results"
 MAIN_JOINTS = ("upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R", "wrist.L", "wrist.R", "upperleg01.L",
@@ -60,13 +61,6 @@ def igavatar(*args: str) -> dict:
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed ({done.returncode}):\n{done.stderr[-3000:]}")
     return json.loads(done.stdout)
-
-
-def commit() -> str:
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                           text=True).stdout.strip()
-    return head + ("+uncommitted" if dirty else "")
 
 
 def synth_subject(run: Path, subject: str, frames: int) -> Path:
