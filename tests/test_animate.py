@@ -17,9 +17,8 @@ import pygltflib
 
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.capture.images import scale_intrinsics
-from igavatar.mesh.gltf import (
-    gltf_axes, gltf_pose, gltf_to_world, pose_glb_vertices, pose_relative_to_canonical, read_rigged_glb,
-)
+from igavatar.mesh.gltf import gltf_axes, gltf_pose, pose_relative_to_canonical
+from igavatar.mesh.gltf_read import gltf_to_world, pose_glb_vertices, read_rigged_glb
 from igavatar.model.render_avatar import render_avatar_view
 from igavatar.render.cameras import (
     box_corners,

@@ -18,16 +18,8 @@ from igavatar.capture.subject import pose_frames
 from igavatar.errors import InputError, NotAvailableError
 from igavatar.mesh.cleanup import is_watertight
 from igavatar.mesh.exr import read_exr
-from igavatar.mesh.gltf import (
-    gltf_axes,
-    gltf_pose,
-    gltf_to_world,
-    linear_to_srgb,
-    pose_glb_vertices,
-    pose_relative_to_canonical,
-    read_glb_animation,
-    read_rigged_glb,
-)
+from igavatar.mesh.gltf import gltf_axes, gltf_pose, linear_to_srgb, pose_relative_to_canonical
+from igavatar.mesh.gltf_read import gltf_to_world, pose_glb_vertices, read_glb_animation, read_rigged_glb
 from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.model.avatar import Avatar
 from igavatar.model.fields import silhouette_offset

@@ -18,20 +18,8 @@ import trimesh
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import bone_transforms, forward_kinematics, linear_blend_skinning
 from igavatar.errors import InputError
-from igavatar.mesh.gltf import (
-    gltf_axes,
-    floor_origin_offset,
-    gltf_pose,
-    gltf_to_world,
-    linear_to_srgb,
-    pose_glb_vertices,
-    pose_relative_to_canonical,
-    read_glb_animation,
-    read_rigged_glb,
-    srgb_to_linear,
-    top_k_weights,
-    write_rigged_glb,
-)
+from igavatar.mesh.gltf import gltf_axes, floor_origin_offset, gltf_pose, linear_to_srgb, pose_relative_to_canonical, srgb_to_linear, top_k_weights, write_rigged_glb
+from igavatar.mesh.gltf_read import gltf_to_world, pose_glb_vertices, read_glb_animation, read_rigged_glb
 
 # A small humanoid-like tree: pelvis, spine, head, two arms of two joints, two legs of two joints.
 PARENTS = np.array([-1, 0, 1, 1, 3, 1, 5, 0, 7, 0, 9])

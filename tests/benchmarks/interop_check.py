@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from provenance import command, commit  # noqa: E402
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
 from igavatar.geometry.raycast import CameraRays, MeshRayCaster, interpolate_vertex_values  # noqa: E402
-from igavatar.mesh.gltf import gltf_to_world, read_rigged_glb  # noqa: E402
+from igavatar.mesh.gltf_read import gltf_to_world, read_rigged_glb  # noqa: E402
 from igavatar.mesh.maps import frontal_camera  # noqa: E402
 from igavatar.mesh.texture import sample_texture  # noqa: E402
 from stages.animate import AnimateOptions, run_animate  # noqa: E402
