@@ -337,9 +337,11 @@ def _primitive(builder: BinaryBuilder, mesh: _Mesh, vertices_gltf: np.ndarray, i
                                                pygltflib.ARRAY_BUFFER)
     joints_idx, weights = top_k_weights(mesh.weights, influences)
     joint_type, joint_dtype = (pygltflib.UNSIGNED_BYTE, np.uint8) if num_joints <= 256 else (pygltflib.UNSIGNED_SHORT, np.uint16)
-    for n, k in enumerate(range(0, influences, 4)):
+    sets = list(enumerate(range(0, influences, 4)))
+    for n, k in sets:  # every JOINTS_n first, then every WEIGHTS_n: the buffer layout files have had
         attributes[f"JOINTS_{n}"] = builder.add(np.ascontiguousarray(joints_idx[:, k:k + 4]).astype(joint_dtype),
                                                 joint_type, pygltflib.VEC4, pygltflib.ARRAY_BUFFER)
+    for n, k in sets:
         attributes[f"WEIGHTS_{n}"] = builder.add(np.ascontiguousarray(weights[:, k:k + 4]), pygltflib.FLOAT,
                                                  pygltflib.VEC4, pygltflib.ARRAY_BUFFER)
     indices = builder.add(mesh.faces.astype(np.uint32).reshape(-1), pygltflib.UNSIGNED_INT, pygltflib.SCALAR,
