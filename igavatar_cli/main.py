@@ -380,7 +380,7 @@ def export(
               "Motion": ("seconds", "fps", "frames", "travel", "seed"),
               "Camera": ("camera", "camera_file", "dataset", "revolutions"),
               QUALITY: ("resolution", "samples", "device"),
-              "Meshes and GLB": ("meshes", "mesh_resolution", "glb", "influences"),
+              "Meshes and GLB": ("meshes", "mesh_resolution", "surface_level", "glb", "influences"),
               CONSOLE: ("quiet", "json_out")})
 def animate(
     motion_arg: Annotated[
@@ -403,6 +403,9 @@ def animate(
     samples: Annotated[Optional[int], typer.Option(help="Samples per ray \\[default: the model's validation setting].", min=1)] = None,
     meshes: Annotated[bool, typer.Option(help="Also write the posed mesh of every frame (meshes/NNNN.ply).")] = False,
     mesh_resolution: Annotated[int, typer.Option(help="Marching-cubes resolution of the canonical mesh for --meshes and --glb.", min=16)] = 256,
+    surface_level: Annotated[str, typer.Option(
+        help="Where --meshes and --glb are made, as in export: silhouette (the level set where the renderer's "
+             "silhouette lies, ~3 beta outside the SDF's zero level) or zero (the zero level).")] = "silhouette",
     glb: Annotated[bool, typer.Option(help="Also write animation.glb: the rigged avatar (Y-up) playing the motion as a glTF animation clip.")] = False,
     influences: Annotated[int, typer.Option(help="Skin weights per vertex in the --glb file: 4 (web engines) or 8 (Blender).")] = 4,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
@@ -422,7 +425,8 @@ def animate(
         model=model or layout.model, out=out or layout.animation, motion=motion_arg or motion or "walk",
         seconds=seconds, fps=fps, frames=frames, travel=travel, seed=seed, camera=camera, camera_file=camera_file,
         dataset=dataset, revolutions=revolutions, resolution=resolution, samples=samples, meshes=meshes,
-        mesh_resolution=mesh_resolution, glb=glb, influences=influences, device=device, anny_cache=anny_cache,
+        mesh_resolution=mesh_resolution, surface_level=surface_level, glb=glb, influences=influences, device=device,
+        anny_cache=anny_cache,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_animate(options, progress=progress)

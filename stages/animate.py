@@ -47,11 +47,12 @@ from igavatar.avatar.dataset import read_dataset
 from igavatar.avatar.glb import write_model_glb
 from igavatar.avatar.model import ModelArtifact, load_model, read_model_manifest
 from igavatar.avatar.poses import DEFAULT_FPS, PoseSequence, procedural_poses, read_poses
-from igavatar.avatar.surfaces import canonical_mesh, vertex_colors, vertex_skin_weights
+from igavatar.avatar.surfaces import canonical_surface, vertex_colors, vertex_skin_weights
 from igavatar.body.motions import MOTION_NAMES
 from igavatar.body.rotations import matrix_to_axis_angle
 from igavatar.errors import ArtifactError, InputError
 from igavatar.mesh.cleanup import clean_mesh
+from igavatar.model.avatar import SURFACE_LEVELS
 from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES
 from igavatar.mesh.skin_drift import skin_drift_mm, sparse_weight_sets
 from igavatar.model.render_avatar import render_posed_view
@@ -83,6 +84,8 @@ class AnimateOptions:
     samples: int | None = None
     meshes: bool = False
     mesh_resolution: int = 256
+    #: Where --meshes and --glb are made (SURFACE_LEVELS), as export and eval.
+    surface_level: str = SURFACE_LEVELS[0]
     glb: bool = False
     influences: int = INFLUENCES
     device: str = "auto"
@@ -98,6 +101,8 @@ def _check_options(options: AnimateOptions) -> None:
         raise InputError(f"--samples {options.samples}: expected at least 1")
     if (options.meshes or options.glb) and options.mesh_resolution < 16:
         raise InputError(f"--mesh-resolution {options.mesh_resolution}: expected at least 16")
+    if options.surface_level not in SURFACE_LEVELS:
+        raise InputError(f"--surface-level {options.surface_level!r}: choose one of {', '.join(SURFACE_LEVELS)}")
     if options.influences not in INFLUENCE_CHOICES:
         raise InputError(f"--influences {options.influences}: expected 4 (web engines) or 8 (JOINTS_1/WEIGHTS_1 too)")
     if options.fps is not None and not (math.isfinite(options.fps) and options.fps > 0):
@@ -192,8 +197,11 @@ class _Surface:
 
 
 def _canonical_surface(model: ModelArtifact, options: AnimateOptions) -> _Surface:
-    """Canonical mesh (largest component), its vertex colors and, for --glb, its skin weights."""
-    vertices, faces = canonical_mesh(model.avatar, resolution=options.mesh_resolution)
+    """Canonical mesh (largest component), its vertex colors and, for --glb, its skin weights.
+
+    Closed by the canonical box at --surface-level, as export and eval make it."""
+    vertices, faces = canonical_surface(model.avatar, resolution=options.mesh_resolution,
+                                        surface_level=options.surface_level)
     if faces.shape[0] == 0:
         raise InputError(f"--meshes/--glb: the model {model.path} has no surface (its SDF never crosses zero); train it longer")
     vertices, faces, _ = clean_mesh(vertices, faces, keep_largest=True)

@@ -278,7 +278,8 @@ def _canonical_geometry(model: ModelArtifact, inputs: _Inputs, options: EvalOpti
     with clock("canonical_mesh_s"):
         # Closed by the canonical box, as `export` makes it: a surface that reaches the box (a sole,
         # a finger tip) is capped there, so that the posed meshes have an inside for the IoU.
-        raw_v, raw_f = canonical_surface(model.avatar, resolution=options.mesh_resolution)
+        raw_v, raw_f = canonical_surface(model.avatar, resolution=options.mesh_resolution,
+                                         surface_level=options.surface_level)
         if raw_f.shape[0] == 0:
             raise InputError(f"{inputs.model_dir}: the model's SDF has no surface in its canonical box (empty mesh); "
                              "the model is not trained enough to evaluate its geometry (use --no-geometry)")
@@ -287,7 +288,7 @@ def _canonical_geometry(model: ModelArtifact, inputs: _Inputs, options: EvalOpti
         "canonical_vertices": int(vertices.shape[0]), "canonical_faces": int(faces.shape[0]),
         "components_dropped": cleanup["components_dropped"], "faces_dropped": cleanup["faces_dropped_in_components"],
         "watertight": is_watertight(vertices, faces),
-        "surface_level": options.surface_level, "surface_level_m": model.avatar.surface_level(),
+        "surface_level": options.surface_level, "surface_level_m": model.avatar.surface_level(options.surface_level),
     }
     notes.append(
         f"pre-filter: the canonical mesh's largest component was kept; {cleanup['components_dropped']} other "
@@ -403,7 +404,6 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     with clock("load_s"):
         model = load_model(inputs.model_dir, device)
         _check_compatible(model, inputs.dataset)
-        model.avatar.surface_level_mode = options.surface_level
     notes: list[str] = [skipped_geometry] if skipped_geometry else []
     canonical = _canonical_geometry(model, inputs, options, clock, notes, progress) if options.geometry else None
     names = list(inputs.test.names)

@@ -286,7 +286,8 @@ def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, 
     """Extract, clean and color the canonical surface (and weigh it for the GLB)."""
     avatar = model.avatar
     with clock("extract_s"), _marching_progress(progress, "marching cubes (canonical)") as report:
-        raw_vertices, raw_faces = canonical_surface(avatar, options.resolution, options.coarse_resolution, report)
+        raw_vertices, raw_faces = canonical_surface(avatar, options.resolution, options.coarse_resolution, report,
+                                                    surface_level=options.surface_level)
     if raw_faces.shape[0] == 0:
         raise InputError(
             f"{model.path}: the model's SDF has no surface inside its canonical box (nothing to export); "
@@ -305,7 +306,7 @@ def _canonical(model: ModelArtifact, options: ExportOptions, clock: StageClock, 
     record = {
         "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
         "watertight": watertight, "resolution": options.resolution, "coarse_resolution": options.coarse_resolution,
-        "surface_level": options.surface_level, "surface_level_m": avatar.surface_level(),
+        "surface_level": options.surface_level, "surface_level_m": avatar.surface_level(options.surface_level),
         "raw_vertices": int(raw_vertices.shape[0]), "raw_faces": int(raw_faces.shape[0]),
         **{key: cleanup[key] for key in ("components", "components_dropped", "faces_dropped_in_components",
                                          "taubin_steps", "decimated")},
@@ -324,7 +325,7 @@ def _export_frame(tmp: Path, model: ModelArtifact, canonical: _Canonical, poses:
         the posed vertices (V, 3) in world coordinates.
     """
     name, transforms = poses.frame_names[k], poses.bone_transforms[k].to(model.device)
-    posed = model.posed(transforms, poses.pose_condition[k])
+    posed = model.posed(transforms, poses.pose_condition[k], nonrigid=options.nonrigid)
     x_posed = posed.pose_vertices(canonical.vertices)
     record = {"name": name, "files": [], "bounds": [x_posed.min(axis=0).tolist(), x_posed.max(axis=0).tolist()]}
     for fmt in [f for f in options.formats if f in ("ply", "obj")] or ["ply"]:
@@ -352,7 +353,8 @@ def _posed_marching(tmp: Path, posed: PosedAvatar, name: str, x_posed: np.ndarra
     margin = max(0.05, 0.05 * float((x_posed.max(axis=0) - x_posed.min(axis=0)).max()))
     with _marching_progress(progress, "marching cubes (posed)") as report:
         vertices, faces = posed_surface(posed, x_posed.min(axis=0) - margin, x_posed.max(axis=0) + margin,
-                                        options.resolution, max(options.coarse_resolution // 2, 8), report)
+                                        options.resolution, max(options.coarse_resolution // 2, 8), report,
+                                        surface_level=options.surface_level)
     vertices, faces, cleanup = _clean(vertices, faces, options)
     marched = {"name": name, "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]),
                "watertight": bool(faces.shape[0] and is_watertight(vertices, faces)),
@@ -508,7 +510,6 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     _check_memory(options, model_path)
     with clock("load_s"):
         model = load_model(model_path, device)
-        model.avatar.surface_level_mode = options.surface_level
         poses = load_export_poses(options, model, progress) if options.pose is not None else None
     inputs = [InputRecord(model_path, "model"), *(poses.inputs if poses else ())]
     if not options.force and unchanged(out, "mesh", options.config(), inputs):
@@ -527,7 +528,6 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
         if textured is not None:
             with clock("write_textured_s"):
                 textured_info = _write_textured(tmp, model, textured, options, poses)
-        model.avatar.nonrigid.set_enabled(model.avatar.nonrigid.enabled and (poses is None or options.nonrigid))
         posed = _pose_frames(tmp, model, canonical, poses, options, clock, progress)
         if glb is not None and posed.frames:
             glb["drift_mm"] = {k: max(r["glb_drift_mm"][k]["max"] for r in posed.frames) for k in ("4", "8")}
@@ -540,7 +540,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
             "canonical": {"files": files, **canonical.record},
             "glb": glb, "textured": textured_info,
             "posed": None if poses is None else {
-                **poses.description, "nonrigid": bool(model.avatar.nonrigid.enabled), "frames": posed.frames,
+                **poses.description, "nonrigid": bool(model.avatar.nonrigid.enabled and options.nonrigid), "frames": posed.frames,
             },
             "posed_marching": posed.marched if options.posed_marching else None,
             "maps": None if not maps else {

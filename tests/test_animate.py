@@ -10,6 +10,7 @@ import cv2
 import imageio
 import numpy as np
 import pytest
+import trimesh
 import torch
 
 from igavatar.artifacts.manifest import read_artifact
@@ -17,6 +18,7 @@ import pygltflib
 
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.capture.images import scale_intrinsics
+from igavatar.errors import InputError
 from igavatar.mesh.gltf import gltf_axes, gltf_pose, pose_relative_to_canonical
 from igavatar.mesh.gltf_read import gltf_to_world, pose_glb_vertices, read_rigged_glb
 from igavatar.model.render_avatar import render_avatar_view
@@ -359,3 +361,22 @@ def test_cli_bad_inputs_fail_with_one_line(cli_runner, tiny_model, tmp_path):
         assert result.exit_code != 0, args
         assert message in result.output and "Traceback" not in result.output, result.output
         assert not (tmp_path / "out").exists()
+
+
+def test_meshes_follow_the_surface_level_as_export_makes_them(tiny_model, tmp_path, walk_animation):
+    """--surface-level zero meshes the SDF's zero level, inside the default silhouette level's mesh,
+    and the default is export's: the same canonical surface, posed."""
+    from igavatar.avatar.model import load_model
+    from igavatar.avatar.surfaces import canonical_surface
+
+    out = tmp_path / "zero"
+    run_animate(AnimateOptions(model=tiny_model, out=out, motion="walk", frames=4, device="cpu", meshes=True,
+                               mesh_resolution=24, surface_level="zero", **FAST))
+    zero = trimesh.load(out / "meshes" / "0000.ply", process=False)
+    silhouette = trimesh.load(walk_animation / "meshes" / "0000.ply", process=False)
+    assert zero.volume < silhouette.volume
+    model = load_model(tiny_model)
+    vertices, _ = canonical_surface(model.avatar, resolution=24, surface_level="silhouette")
+    assert abs(len(silhouette.vertices) - len(vertices)) <= 0.05 * len(vertices)  # the largest component of it
+    with pytest.raises(InputError, match="--surface-level 'middle'"):
+        run_animate(AnimateOptions(model=tiny_model, out=tmp_path / "bad", surface_level="middle", meshes=True, **FAST))

@@ -58,8 +58,7 @@ def sphere_avatar(half_size: float, radius: float, center=(0.0, 0.0, 0.0)) -> Av
     box = torch.tensor([[-half_size] * 3, [half_size] * 3])
     avatar = Avatar(config, box, torch.ones(1, 4, 4, 4), box[0] - 0.2, box[1] + 0.2, pose_dim=3, init_bones=(0,))
     avatar.sdf_field = SphereSDF(center, radius, config.sdf.feature_dim)
-    avatar.surface_level_mode = "zero"  # the sphere itself (the silhouette level is tested on its own)
-    return avatar.eval()
+    return avatar.eval()  # mesh it at surface_level="zero": the sphere itself
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +77,7 @@ def posed_export(small_run, tiny_model, tmp_path_factory) -> Path:
 def test_sphere_canonical_mesh_has_the_radius_and_is_watertight():
     radius, center = 0.45, np.array([0.05, -0.1, 0.02])
     avatar = sphere_avatar(0.7, radius, tuple(center))
-    vertices, faces = canonical_surface(avatar, resolution=48, coarse_resolution=24)
+    vertices, faces = canonical_surface(avatar, resolution=48, coarse_resolution=24, surface_level="zero")
     distance = np.linalg.norm(vertices - center, axis=1)
     # Linear interpolation along grid edges cuts chords: about h^2 / (8 r) inside, h ~ 2.5 cm here.
     assert np.abs(distance - radius).max() < 5e-4
@@ -91,19 +90,17 @@ def test_the_silhouette_level_mesh_is_the_sphere_grown_by_the_silhouette_offset(
     radius = 0.3
     avatar = sphere_avatar(0.6, radius)
     avatar.density.set_ceiling(0.002)  # beta = 2 mm
-    avatar.surface_level_mode = "silhouette"
     offset = silhouette_offset(0.002)
-    assert avatar.surface_level() == pytest.approx(offset) and 0.0045 < offset < 0.0065  # ~2.7 beta at r = 10 cm
-    vertices, _ = canonical_surface(avatar, resolution=48, coarse_resolution=24)
+    assert avatar.surface_level("silhouette") == pytest.approx(offset) and 0.0045 < offset < 0.0065  # ~2.7 beta at r = 10 cm
+    vertices, _ = canonical_surface(avatar, resolution=48, coarse_resolution=24, surface_level="silhouette")
     assert np.abs(np.linalg.norm(vertices, axis=1) - (radius + offset)).max() < 5e-4
-    avatar.surface_level_mode = "zero"
-    vertices, _ = canonical_surface(avatar, resolution=48, coarse_resolution=24)
+    vertices, _ = canonical_surface(avatar, resolution=48, coarse_resolution=24, surface_level="zero")
     assert np.abs(np.linalg.norm(vertices, axis=1) - radius).max() < 5e-4
 
 
 def test_a_surface_reaching_the_canonical_box_is_capped_closed():
     avatar = sphere_avatar(0.4, 0.5)
-    vertices, faces = canonical_surface(avatar, resolution=40, coarse_resolution=20)
+    vertices, faces = canonical_surface(avatar, resolution=40, coarse_resolution=20, surface_level="zero")
     assert is_watertight(vertices, faces)
     assert np.abs(vertices).max() <= 0.4 + 1e-5
     on_box = np.isclose(np.abs(vertices), 0.4, atol=1e-4).any(axis=1)
@@ -115,12 +112,12 @@ def test_posed_marching_and_lbs_posing_of_a_rigid_sphere_agree():
     avatar = sphere_avatar(0.5, radius)
     transform = rigid_matrix(axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.5])), torch.tensor([0.2, 0.1, -0.3]))
     posed_avatar = PosedAvatar.of(avatar, transform[None], torch.zeros(3))
-    vertices, faces = canonical_surface(avatar, resolution=32, coarse_resolution=16)
+    vertices, faces = canonical_surface(avatar, resolution=32, coarse_resolution=16, surface_level="zero")
     posed = posed_avatar.pose_vertices(vertices)
     expected = vertices @ transform[:3, :3].numpy().T + transform[:3, 3].numpy()
     np.testing.assert_allclose(posed, expected, atol=1e-5)
     marched, marched_faces = posed_surface(posed_avatar, np.full(3, -0.7), np.full(3, 0.6), resolution=32,
-                                           coarse_resolution=16)
+                                           coarse_resolution=16, surface_level="zero")
     assert is_watertight(marched, marched_faces)
     assert np.abs(np.linalg.norm(marched - transform[:3, 3].numpy(), axis=1) - radius).max() < 2e-3
 

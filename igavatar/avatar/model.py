@@ -128,9 +128,11 @@ class ModelArtifact(ModelManifest):
             root_translation.float(),
         )
 
-    def posed(self, bone_transforms: torch.Tensor, pose_condition: torch.Tensor) -> PosedAvatar:
-        """The avatar in one frame: (J, 4, 4) canonical -> world transforms, (pose_dim,) conditioning."""
-        return PosedAvatar.of(self.avatar, torch.as_tensor(bone_transforms).float(), torch.as_tensor(pose_condition).float())
+    def posed(self, bone_transforms: torch.Tensor, pose_condition: torch.Tensor, nonrigid: bool = True) -> PosedAvatar:
+        """The avatar in one frame: (J, 4, 4) canonical -> world transforms, (pose_dim,) conditioning;
+        `nonrigid` False poses by skinning alone (PosedAvatar.nonrigid)."""
+        return PosedAvatar.of(self.avatar, torch.as_tensor(bone_transforms).float(),
+                              torch.as_tensor(pose_condition).float(), nonrigid)
 
 
 def _load_weights(module: torch.nn.Module, weights: dict, key: str, path: Path) -> None:

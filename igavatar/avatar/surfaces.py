@@ -1,15 +1,14 @@
 """The avatar's surface as a mesh: canonical and posed extraction, colors, skin weights.
 
     vertices, faces = canonical_surface(avatar, resolution=256)      # closed by the canonical box
-    vertices, faces = canonical_mesh(avatar, resolution=256)         # open where it leaves the box
     vertices, faces = posed_surface(posed, box_min, box_max, 128)    # marching in posed space
     colors = vertex_colors(avatar, vertices)                         # (V, 3) uint8
     world = posed.pose_vertices(vertices)                             # see igavatar.model.posed
 
 Extraction is igavatar.geometry.extract (coarse grid, then a fine narrow band); `progress`, when
 given, is called as progress(points_done, points_total). Every mesh is the level set
-`avatar.surface_level()` of the SDF: by default where the renderer's silhouette lies
-(igavatar.model.fields.silhouette_offset), not its zero level.
+`avatar.surface_level(surface_level)` of the SDF: "silhouette" (the default) where the renderer's
+silhouette lies (igavatar.model.fields.silhouette_offset), "zero" its zero level.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import numpy as np
 import torch
 
 from igavatar.geometry.extract import extract_mesh
-from igavatar.model.avatar import Avatar
+from igavatar.model.avatar import SURFACE_LEVELS, Avatar
 from igavatar.model.posed import PosedAvatar
 from igavatar.skinning.grid import sample_skinning_weights
 
@@ -33,7 +32,7 @@ _BOX_PAD = 0.02
 Progress = Callable[[int, int], None] | None
 
 
-def _closed_sdf(avatar: Avatar) -> Callable[[torch.Tensor], torch.Tensor]:
+def _closed_sdf(avatar: Avatar, level_m: float) -> Callable[[torch.Tensor], torch.Tensor]:
     """SDF of the canonical surface intersected with the canonical box: x (M, 3) -> (M,).
 
     max(sdf, box distance) is the SDF of the intersection (up to the usual max-bound), so a
@@ -43,7 +42,7 @@ def _closed_sdf(avatar: Avatar) -> Callable[[torch.Tensor], torch.Tensor]:
     center, half = (box[0] + box[1]) / 2, (box[1] - box[0]) / 2
 
     def sdf_fn(x_canonical: torch.Tensor) -> torch.Tensor:
-        sdf = avatar.surface_sdf(x_canonical)
+        sdf = avatar.surface_sdf(x_canonical, level_m)
         q = (x_canonical - center).abs() - half
         box_sdf = q.clamp_min(0).norm(dim=-1) + q.amax(dim=-1).clamp_max(0)
         return torch.maximum(sdf, box_sdf)
@@ -53,7 +52,8 @@ def _closed_sdf(avatar: Avatar) -> Callable[[torch.Tensor], torch.Tensor]:
 
 @torch.no_grad()
 def canonical_surface(
-    avatar: Avatar, resolution: int, coarse_resolution: int = COARSE_RESOLUTION, progress: Progress = None
+    avatar: Avatar, resolution: int, coarse_resolution: int = COARSE_RESOLUTION, progress: Progress = None,
+    surface_level: str = SURFACE_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes of the canonical SDF capped by the canonical box (closed), before cleanup.
 
@@ -61,7 +61,7 @@ def canonical_surface(
     """
     box = avatar.canonical_box.detach().cpu().numpy().astype(np.float64)
     pad = _BOX_PAD * float((box[1] - box[0]).max())
-    return extract_mesh(_closed_sdf(avatar), box[0] - pad, box[1] + pad, resolution=resolution,
+    return extract_mesh(_closed_sdf(avatar, avatar.surface_level(surface_level)), box[0] - pad, box[1] + pad, resolution=resolution,
                         coarse_resolution=coarse_resolution, progress=progress, device=avatar.canonical_box.device)
 
 
@@ -74,24 +74,9 @@ def vertices_on_box(avatar: Avatar, vertices: np.ndarray, resolution: int) -> np
 
 
 @torch.no_grad()
-def canonical_mesh(
-    avatar: Avatar, resolution: int = 256, coarse_resolution: int = COARSE_RESOLUTION, progress: Progress = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Marching cubes of the canonical SDF over the canonical box: (V, 3) float32, (F, 3) int64."""
-    device = avatar.canonical_box.device
-
-    def sdf_fn(x_canonical: torch.Tensor) -> torch.Tensor:
-        return avatar.surface_sdf(x_canonical.to(device))
-
-    box = avatar.canonical_box.cpu().numpy()
-    return extract_mesh(sdf_fn, box[0], box[1], resolution=resolution, coarse_resolution=coarse_resolution,
-                        progress=progress, device=device)
-
-
-@torch.no_grad()
 def posed_surface(
     posed: PosedAvatar, box_min: np.ndarray, box_max: np.ndarray, resolution: int,
-    coarse_resolution: int = COARSE_RESOLUTION // 2, progress: Progress = None,
+    coarse_resolution: int = COARSE_RESOLUTION // 2, progress: Progress = None, surface_level: str = SURFACE_LEVELS[0],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes in posed space (the paper's alternative), before cleanup.
 
@@ -99,7 +84,8 @@ def posed_surface(
     Returns world vertices (V, 3) and faces (F, 3).
     """
     # Skinning stretches distances a little, so the narrow band is widened (see extract_mesh).
-    return extract_mesh(posed.sdf, box_min, box_max, resolution=resolution, coarse_resolution=coarse_resolution,
+    level_m = posed.avatar.surface_level(surface_level)
+    return extract_mesh(lambda x_posed: posed.sdf(x_posed, level_m), box_min, box_max, resolution=resolution, coarse_resolution=coarse_resolution,
                         progress=progress, device=posed.device, band=2.0, chunk_points=2**15)
 
 

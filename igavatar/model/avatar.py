@@ -99,33 +99,35 @@ class Avatar(nn.Module):
             deformer_config = replace(deformer_config, init_bones=tuple(init_bones), init_parts=parts)
         self.deformer = FastSnarfDeformer(skinning_grid, grid_box_min, grid_box_max, deformer_config)
         self.register_buffer("canonical_box", canonical_box.clone())
-        #: Where meshes are made (SURFACE_LEVELS; not trained, not saved: a stage sets it).
-        self.surface_level_mode = SURFACE_LEVELS[0]
-
-    def surface_level(self) -> float:
-        """Meters outside the SDF's zero level at which meshes are made (see `surface_level_mode`)."""
-        if self.surface_level_mode == "zero":
+    def surface_level(self, mode: str) -> float:
+        """Meters outside the SDF's zero level at which meshes are made: 0 for "zero", where the
+        renderer's silhouette lies for "silhouette" (SURFACE_LEVELS)."""
+        if mode not in SURFACE_LEVELS:
+            raise ValueError(f"surface level {mode!r}: expected one of {SURFACE_LEVELS}")
+        if mode == "zero":
             return 0.0
         return silhouette_offset(float(self.density.beta.detach()))
 
-    def surface_sdf(self, x_canonical: torch.Tensor) -> torch.Tensor:
-        """(M,) signed distance to the meshed surface (the SDF minus `surface_level()`) at (M, 3) canonical points."""
-        return self.sdf_field(x_canonical)[0].reshape(-1) - self.surface_level()
+    def surface_sdf(self, x_canonical: torch.Tensor, level_m: float) -> torch.Tensor:
+        """(M,) signed distance to the meshed surface (the SDF minus `level_m`, see `surface_level`)
+        at (M, 3) canonical points."""
+        return self.sdf_field(x_canonical)[0].reshape(-1) - level_m
 
     def canonical_density(self, x_canonical: torch.Tensor) -> torch.Tensor:
         """sigma (P,) at canonical points, without non-rigid offsets (for the occupancy grid)."""
         sdf, _ = self.sdf_field(x_canonical)
         return self.density(sdf)
 
-    def offset_points(self, x_rigid: torch.Tensor, pose_condition: torch.Tensor) -> torch.Tensor:
-        """(M, 3) rigid canonical points plus the pose-conditioned non-rigid offset (when enabled)."""
-        if not self.nonrigid.enabled:
+    def offset_points(self, x_rigid: torch.Tensor, pose_condition: torch.Tensor, nonrigid: bool = True) -> torch.Tensor:
+        """(M, 3) rigid canonical points plus the pose-conditioned non-rigid offset, when training
+        has enabled it and the caller wants it (`nonrigid`: export --no-nonrigid does not)."""
+        if not (nonrigid and self.nonrigid.enabled):
             return x_rigid
         return x_rigid + self.nonrigid(x_rigid, pose_condition)
 
     @torch.no_grad()
     def correspond(
-        self, x_posed: torch.Tensor, frame: PreparedFrame, pose_condition: torch.Tensor
+        self, x_posed: torch.Tensor, frame: PreparedFrame, pose_condition: torch.Tensor, nonrigid: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Rigid canonical correspondences of posed points.
 
@@ -133,6 +135,7 @@ class Avatar(nn.Module):
             x_posed: (M, 3) posed world points.
             frame: the deformer's PreparedFrame of this frame.
             pose_condition: (pose_dim,) conditioning of the non-rigid offset (used to score candidates).
+            nonrigid: whether candidates are scored with the offset (see `offset_points`).
         Returns:
             x_canonical (M, 3) rigid correspondences (before the non-rigid offset) and found (M,)
             bool: whether any valid root exists. Points not found get their first iterate.
@@ -145,7 +148,7 @@ class Avatar(nn.Module):
             # Score only the candidates that matter: valid roots of points with several of them.
             cand = candidates[ambiguous]
             cand_valid = valid[ambiguous]
-            sdf, _ = self.sdf_field(self.offset_points(cand[cand_valid], pose_condition))
+            sdf, _ = self.sdf_field(self.offset_points(cand[cand_valid], pose_condition, nonrigid))
             score = torch.full(cand_valid.shape, float("-inf"), dtype=sdf.dtype, device=sdf.device)
             score[cand_valid] = -sdf  # highest density = lowest signed distance
             chosen[ambiguous] = score.argmax(dim=1)
@@ -159,6 +162,7 @@ class Avatar(nn.Module):
         *,
         sigma_noise_std: float = 0.0,
         generator: torch.Generator | None = None,
+        nonrigid: bool = True,
     ) -> FieldOutput:
         """Canonical fields at rigid correspondences (the non-rigid offset is applied here).
 
@@ -167,11 +171,12 @@ class Avatar(nn.Module):
             pose_condition: (pose_dim,) conditioning of the non-rigid offset.
             sigma_noise_std: std of Gaussian noise added to the density (early training), clamped >= 0.
             generator: RNG of that noise.
+            nonrigid: whether the offset applies (see `offset_points`).
         Returns:
             FieldOutput with sigma (M,), rgb (M, 3), sdf (M,) and the analytic SDF gradient (M, 3)
             (closed form, so it costs no double backward), differentiable wrt the parameters.
         """
-        sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose_condition))
+        sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose_condition, nonrigid))
         normal = F.normalize(gradient, dim=-1, eps=1e-12)
         rgb = self.color_field(feature, normal)
         sigma = self.density(sdf)

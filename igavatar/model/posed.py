@@ -2,7 +2,7 @@
 
     posed = PosedAvatar.of(avatar, bone_transforms, pose_condition)   # (J, 4, 4) canonical -> world, (pose_dim,)
     posed.field_fn(x_posed)        # renderer FieldOutput; density 0 where no canonical root exists
-    posed.sdf(x_posed)             # (M,) canonical SDF at the correspondences, NO_ROOT_SDF without one
+    posed.sdf(x_posed, level_m)    # (M,) canonical SDF at the correspondences, NO_ROOT_SDF without one
     posed.colors(x_posed)          # (M, 3) sRGB in [0, 1]
     posed.pose_vertices(v_canon)   # canonical surface vertices -> world (non-rigid offset included)
     posed.occupancy(canonical_grid, posed_box, resolution)
@@ -40,17 +40,26 @@ class PosedAvatar:
         avatar: the Avatar (canonical SDF, color, non-rigid offset, deformer).
         frame: the deformer's PreparedFrame of the frame's (J, 4, 4) bone transforms.
         pose_condition: (pose_dim,) conditioning of the non-rigid offset, on the avatar's device.
+        nonrigid: whether the pose-conditioned offset applies (when training has enabled it);
+            False poses by skinning alone (export --no-nonrigid).
     """
 
     avatar: Avatar
     frame: PreparedFrame
     pose_condition: torch.Tensor
+    nonrigid: bool = True
 
     @classmethod
-    def of(cls, avatar: Avatar, bone_transforms: torch.Tensor, pose_condition: torch.Tensor) -> PosedAvatar:
+    def of(cls, avatar: Avatar, bone_transforms: torch.Tensor, pose_condition: torch.Tensor,
+           nonrigid: bool = True) -> PosedAvatar:
         """Pose `avatar` with (J, 4, 4) canonical -> world transforms and (pose_dim,) conditioning."""
         device = avatar.canonical_box.device
-        return cls(avatar, avatar.deformer.prepare(bone_transforms.to(device)), pose_condition.to(device))
+        return cls(avatar, avatar.deformer.prepare(bone_transforms.to(device)), pose_condition.to(device), nonrigid)
+
+    @property
+    def offset_applies(self) -> bool:
+        """Whether posed points move by the non-rigid offset (wanted here and enabled by training)."""
+        return self.nonrigid and self.avatar.nonrigid.enabled
 
     @property
     def device(self) -> torch.device:
@@ -58,13 +67,14 @@ class PosedAvatar:
 
     def correspond(self, x_posed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(M, 3) world points -> rigid canonical correspondences (M, 3) and found (M,) bool."""
-        return self.avatar.correspond(x_posed, self.frame, self.pose_condition)
+        return self.avatar.correspond(x_posed, self.frame, self.pose_condition, self.nonrigid)
 
     def fields_at(
         self, x_rigid: torch.Tensor, *, sigma_noise_std: float = 0.0, generator: torch.Generator | None = None
     ) -> FieldOutput:
         """Differentiable canonical fields at rigid correspondences (see Avatar.field_at)."""
-        return self.avatar.field_at(x_rigid, self.pose_condition, sigma_noise_std=sigma_noise_std, generator=generator)
+        return self.avatar.field_at(x_rigid, self.pose_condition, sigma_noise_std=sigma_noise_std, generator=generator,
+                                    nonrigid=self.nonrigid)
 
     def canonical_samples(self, samples: RaySamples) -> tuple[RaySamples, torch.Tensor]:
         """Posed ray samples -> the same samples at their rigid canonical correspondences.
@@ -88,18 +98,18 @@ class PosedAvatar:
         return FieldOutput(sigma=torch.where(found, out.sigma, 0.0), rgb=out.rgb, gradient=out.gradient, sdf=out.sdf)
 
     @torch.no_grad()
-    def sdf(self, x_posed: torch.Tensor) -> torch.Tensor:
-        """(M,) signed distance to the meshed surface (Avatar.surface_sdf) at the correspondences of
-        (M, 3) world points; NO_ROOT_SDF without one."""
+    def sdf(self, x_posed: torch.Tensor, level_m: float) -> torch.Tensor:
+        """(M,) signed distance to the meshed surface (Avatar.surface_sdf at `level_m`) at the
+        correspondences of (M, 3) world points; NO_ROOT_SDF without one."""
         x_rigid, found = self.correspond(x_posed)
-        sdf = self.avatar.surface_sdf(self.avatar.offset_points(x_rigid, self.pose_condition))
+        sdf = self.avatar.surface_sdf(self.avatar.offset_points(x_rigid, self.pose_condition, self.nonrigid), level_m)
         return torch.where(found, sdf, torch.full_like(sdf, NO_ROOT_SDF))
 
     @torch.no_grad()
     def canonical_points(self, x_posed: torch.Tensor) -> torch.Tensor:
         """(M, 3) canonical points (non-rigid offset applied) where (M, 3) world points read the fields."""
         x_rigid, _ = self.correspond(x_posed)
-        return self.avatar.offset_points(x_rigid, self.pose_condition)
+        return self.avatar.offset_points(x_rigid, self.pose_condition, self.nonrigid)
 
     @torch.no_grad()
     def skin(self, x_canonical: torch.Tensor) -> torch.Tensor:
@@ -119,7 +129,7 @@ class PosedAvatar:
         for part in torch.from_numpy(np.asarray(vertices_canonical, np.float32)).split(chunk):
             v = part.to(self.device)
             x_rigid = v
-            if nonrigid.enabled:
+            if self.offset_applies:
                 for _ in range(iterations):
                     x_rigid = v - nonrigid(x_rigid, self.pose_condition)
             posed.append(self.avatar.deformer.forward_skinning(x_rigid, self.frame).cpu())
