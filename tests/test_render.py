@@ -9,7 +9,7 @@ import torch
 
 from igavatar.render.rays import RayBundle, pixel_grid, pixel_rays, ray_box_intersection, rays_in_box
 from igavatar.render.sampler import compact_samples, sample_along_rays
-from igavatar.render.volume import FieldOutput, render_image, render_rays
+from igavatar.render.volume import FieldOutput, march_rays, render_image, render_rays
 
 RADIUS = 0.5
 BETA = 0.002
@@ -321,7 +321,7 @@ def test_early_termination_skips_samples_behind_the_surface() -> None:
     full = render_rays(samples, field, torch.ones(3))
     n_full = sum(counts)
     counts.clear()
-    early = render_rays(samples, field, torch.ones(3), early_stop_transmittance=1e-4, march_chunk=16)
+    early = march_rays(samples, field, torch.ones(3), early_stop_transmittance=1e-4, march_chunk=16)
     assert sum(counts) < 0.8 * n_full
     assert (early.rgb - full.rgb).abs().max() < 2e-4
     assert int(early.valid.sum()) == sum(counts)

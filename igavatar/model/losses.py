@@ -217,6 +217,28 @@ def smooth_loss_along_ray(
     Returns:
         Scalar; 0 when no ray has a pair.
     """
+    _check_smooth_inputs(gradients, valid, normalization, pairs, t_starts, t_ends, positions, sdf, band)
+    valid = valid.bool()
+    if band is not None:
+        valid = valid & (sdf.detach().abs() < band)
+    n_hat = F.normalize(gradients, dim=-1, eps=_NORMAL_EPS)
+    pack, num_valid = _packer(valid)
+    n_packed = pack(n_hat)
+    s = valid.shape[1]
+    valid_packed = torch.arange(s, device=valid.device)[None, :] < num_valid[:, None]
+    pair_valid = valid_packed[:, :-1] & valid_packed[:, 1:]  # (R, S-1)
+    if pairs == "adjacent":
+        pair_valid = pair_valid & _touching(pack(t_starts.detach()), pack(t_ends.detach()))
+    elif pairs == "monotone":
+        pair_valid = pair_valid & _one_way(n_packed.detach(), pack(positions.detach()))
+    if normalization == "released":
+        return _released_form(n_packed, pair_valid)
+    return _eq9_form(gradients, n_packed, pair_valid, num_valid, per_sample=normalization == "samples")
+
+
+def _check_smooth_inputs(gradients: Tensor, valid: Tensor, normalization: str, pairs: str, t_starts: Tensor | None,
+                         t_ends: Tensor | None, positions: Tensor | None, sdf: Tensor | None, band: float | None) -> None:
+    """ValueError unless smooth_loss_along_ray's inputs fit together (the tensors its modes need)."""
     if gradients.ndim != 3 or gradients.shape[-1] != 3 or valid.shape != gradients.shape[:2]:
         raise ValueError(
             f"smooth_loss_along_ray: gradients {tuple(gradients.shape)} and valid "
@@ -239,17 +261,17 @@ def smooth_loss_along_ray(
         raise ValueError(
             f"smooth_loss_along_ray: pairs='monotone' needs positions of shape {tuple(gradients.shape)}"
         )
-    r, s, _ = gradients.shape
-    valid = valid.bool()
-    if band is not None:
-        if sdf is None or sdf.shape != valid.shape:
-            raise ValueError(f"smooth_loss_along_ray: band needs sdf of shape {tuple(valid.shape)}")
-        valid = valid & (sdf.detach().abs() < band)
-    n_hat = F.normalize(gradients, dim=-1, eps=_NORMAL_EPS)
-    # Pack each ray's valid samples to the front in order (slot = number of valid samples
-    # before it; invalid ones go to a spare last column), so consecutive valid samples are
-    # adjacent whatever gaps separated them.
-    num_valid = valid.sum(dim=1)
+    if band is not None and (sdf is None or sdf.shape != valid.shape):
+        raise ValueError(f"smooth_loss_along_ray: band needs sdf of shape {tuple(valid.shape)}")
+
+
+def _packer(valid: Tensor) -> tuple[Callable[[Tensor], Tensor], Tensor]:
+    """A function packing each ray's valid samples to the front in order, and the count (R,) of them.
+
+    Slot = number of valid samples before it; invalid ones go to a spare last column and are cut,
+    so consecutive valid samples are adjacent whatever gaps separated them.
+    """
+    r, s = valid.shape
     dest = torch.where(valid, torch.cumsum(valid, dim=1) - 1, s)
 
     def pack(values: Tensor) -> Tensor:
@@ -257,34 +279,45 @@ def smooth_loss_along_ray(
         index = dest.reshape(r, s, *([1] * (values.ndim - 2))).expand_as(values)
         return values.new_zeros((r, s + 1, *values.shape[2:])).scatter(1, index, values)[:, :s]
 
-    n_packed = pack(n_hat)
-    valid_packed = torch.arange(s, device=valid.device)[None, :] < num_valid[:, None]
-    pair_valid = valid_packed[:, :-1] & valid_packed[:, 1:]  # (R, S-1)
-    if pairs == "adjacent":
-        starts, ends = pack(t_starts.detach()), pack(t_ends.detach())
-        # Touching intervals share a boundary up to rounding; a skipped bin leaves a gap of one
-        # whole interval, so a tolerance of a hundredth of the interval separates the two.
-        tolerance = 1e-2 * (ends - starts)[:, :-1].abs()
-        pair_valid = pair_valid & ((starts[:, 1:] - ends[:, :-1]).abs() <= tolerance)
-    elif pairs == "monotone":
-        # The SDF's slope along the chord between the two samples, at each end: the unit normals
-        # have the gradients' signs, so the packed normals serve.
-        chord = pack(positions.detach()).diff(dim=1)  # (R, S-1, 3)
-        normals = n_packed.detach()
-        slope_a = (normals[:, :-1] * chord).sum(dim=-1)
-        slope_b = (normals[:, 1:] * chord).sum(dim=-1)
-        pair_valid = pair_valid & (slope_a * slope_b > 0)
-    if normalization == "released":
-        n_a, n_b = n_packed[:, :-1], n_packed[:, 1:]
-        n_mid = 0.5 * (n_a + n_b)
-        term = (n_mid - n_a).square().sum(dim=-1) + (n_mid - n_b).square().sum(dim=-1)
-        return torch.where(pair_valid, term, torch.zeros_like(term)).sum() / max(1, r * (s - 1))
+    return pack, valid.sum(dim=1)
+
+
+def _touching(starts: Tensor, ends: Tensor) -> Tensor:
+    """(R, S-1) whether consecutive packed intervals touch.
+
+    Touching intervals share a boundary up to rounding; a skipped bin leaves a gap of one whole
+    interval, so a tolerance of a hundredth of the interval separates the two.
+    """
+    tolerance = 1e-2 * (ends - starts)[:, :-1].abs()
+    return (starts[:, 1:] - ends[:, :-1]).abs() <= tolerance
+
+
+def _one_way(normals: Tensor, positions: Tensor) -> Tensor:
+    """(R, S-1) whether the SDF runs one way between consecutive packed samples: its slope along the
+    chord has one sign at both ends (the unit normals have the gradients' signs, so they serve)."""
+    chord = positions.diff(dim=1)  # (R, S-1, 3)
+    slope_a = (normals[:, :-1] * chord).sum(dim=-1)
+    slope_b = (normals[:, 1:] * chord).sum(dim=-1)
+    return slope_a * slope_b > 0
+
+
+def _released_form(n_packed: Tensor, pair_valid: Tensor) -> Tensor:
+    """The authors' code's scale: squared summands, summed over pairs, divided by every pair slot."""
+    r, s = n_packed.shape[:2]
+    n_a, n_b = n_packed[:, :-1], n_packed[:, 1:]
+    n_mid = 0.5 * (n_a + n_b)
+    term = (n_mid - n_a).square().sum(dim=-1) + (n_mid - n_b).square().sum(dim=-1)
+    return torch.where(pair_valid, term, torch.zeros_like(term)).sum() / max(1, r * (s - 1))
+
+
+def _eq9_form(gradients: Tensor, n_packed: Tensor, pair_valid: Tensor, num_valid: Tensor, per_sample: bool) -> Tensor:
+    """Eq. 9: per ray, the pair sum over its valid samples (or pairs); the mean over rays with a pair."""
     term = _pair_term(n_packed[:, :-1], n_packed[:, 1:])
     per_ray_sum = torch.where(pair_valid, term, torch.zeros_like(term)).sum(dim=1)
     has_pair = num_valid >= 2
     if not bool(has_pair.any()):
         return gradients.sum() * 0.0
-    denom = num_valid if normalization == "samples" else num_valid - 1
+    denom = num_valid if per_sample else num_valid - 1
     return (per_ray_sum[has_pair] / denom[has_pair].to(per_ray_sum.dtype)).mean()
 
 

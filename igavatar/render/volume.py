@@ -1,6 +1,7 @@
 """Alpha compositing of ray samples through a field given as a callable (no model imports).
 
-    out = render_rays(samples, field_fn, background)          # training: noise background
+    out = render_rays(samples, field_fn, background)          # training: noise background, every sample
+    out = march_rays(samples, field_fn, white)                # eval: front to back, stops when opaque
     image = render_image(K, w2c, H, W, field_fn, box_min, box_max, occupied_fn=grid.is_occupied)
 
 ``field_fn`` maps the **valid** sample positions only, flattened to (M, 3), to a
@@ -29,7 +30,7 @@ from torch import Tensor
 from igavatar.render.rays import pixel_grid, pixel_rays, rays_in_box
 from igavatar.render.sampler import OccupiedFn, RaySamples, sample_along_rays
 
-__all__ = ["FieldFn", "FieldOutput", "ImageRender", "RenderOutput", "render_image", "render_rays"]
+__all__ = ["FieldFn", "FieldOutput", "ImageRender", "RenderOutput", "march_rays", "render_image", "render_rays"]
 
 
 @dataclass(frozen=True)
@@ -124,15 +125,8 @@ def _join(parts: list[Tensor]) -> Tensor:
     return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
 
 
-def render_rays(
-    samples: RaySamples,
-    field_fn: FieldFn,
-    background: Tensor,
-    *,
-    early_stop_transmittance: float | None = None,
-    march_chunk: int = 32,
-) -> RenderOutput:
-    """Volume-render R rays from their samples.
+def render_rays(samples: RaySamples, field_fn: FieldFn, background: Tensor) -> RenderOutput:
+    """Volume-render R rays from all their samples at once (training: the graph is kept).
 
     Args:
         samples: RaySamples (R, S) from :func:`sample_along_rays`.
@@ -140,86 +134,130 @@ def render_rays(
             there are none, in which case every ray shows the background).
         background: (R, 3) or (3,) color behind the subject (random noise in training, white
             at eval).
-        early_stop_transmittance: None renders all samples (training). A threshold (1e-4 at
-            eval) marches the samples ``march_chunk`` slots at a time and stops evaluating a ray
-            once its transmittance falls below it; weights of samples with T_i below it are
-            zeroed, which changes the color by at most the threshold.
-        march_chunk: slots per step of that march.
 
     Returns:
         RenderOutput.
     """
-    if early_stop_transmittance is not None and not 0.0 < early_stop_transmittance < 1.0:
-        raise ValueError(
-            f"render_rays: early_stop_transmittance must be in (0, 1) or None, got {early_stop_transmittance}"
-        )
-    if background.shape not in ((3,), (samples.valid.shape[0], 3)):
-        raise ValueError(
-            f"render_rays: background has shape {tuple(background.shape)}, expected (3,) or "
-            f"({samples.valid.shape[0]}, 3)"
-        )
-    valid_in = samples.valid
-    r, s = valid_in.shape
-    background = background.to(samples.t).expand(r, 3)
-    deltas = samples.deltas
-    chunk = s if early_stop_transmittance is None else max(1, int(march_chunk))
+    background = _checked_background(samples, background)
+    chunk = _chunk_fields(samples, field_fn, samples.valid, 0, samples.valid.shape[1], _Optional())
+    weights, _ = _chunk_weights(chunk.sigma, samples.deltas, samples.t.new_zeros(samples.valid.shape[0]))
+    return _output(samples, background, [chunk], [weights], chunk.optional)
 
+
+def march_rays(
+    samples: RaySamples,
+    field_fn: FieldFn,
+    background: Tensor,
+    *,
+    early_stop_transmittance: float = 1e-4,
+    march_chunk: int = 32,
+) -> RenderOutput:
+    """Volume-render R rays front to back, `march_chunk` sample slots at a time (eval), no longer
+    evaluating a ray once its transmittance falls below `early_stop_transmittance`.
+
+    Weights of samples with T_i below the threshold are zeroed, which changes the color by at most
+    the threshold. Arguments and result as :func:`render_rays`.
+    """
+    if not 0.0 < early_stop_transmittance < 1.0:
+        raise ValueError(f"march_rays: early_stop_transmittance must be in (0, 1), got {early_stop_transmittance}")
+    background = _checked_background(samples, background)
+    r, s = samples.valid.shape
+    width = max(1, int(march_chunk))
+    log_threshold = math.log(early_stop_transmittance)
     log_t_run = samples.t.new_zeros(r)  # log transmittance before the current chunk
-    sigma_parts, rgb_parts, weight_parts, valid_parts = [], [], [], []
-    grad_parts: list[Tensor] = []
-    normal_parts: list[Tensor] = []
-    sdf_parts: list[Tensor] = []
-    has_grad = has_sdf = None
-    log_threshold = None if early_stop_transmittance is None else math.log(early_stop_transmittance)
-    for s0 in range(0, s, chunk):
-        s1 = min(s, s0 + chunk)
-        active = valid_in[:, s0:s1]
-        if log_threshold is not None:
-            active = active & (log_t_run >= log_threshold)[:, None]
-        m = int(active.sum())
-        width = s1 - s0
-        if m > 0:
-            out = FieldOutput.coerce(field_fn(samples.positions[:, s0:s1][active]), m)
-            sigma_c = _scatter(out.sigma, active)
-            rgb_c = _scatter(out.rgb, active)
-            if has_grad is None:
-                has_grad, has_sdf = out.gradient is not None, out.sdf is not None
-            if has_grad != (out.gradient is not None) or has_sdf != (out.sdf is not None):
-                raise ValueError("field_fn must return the same optional outputs on every call")
-            grad_c = _scatter(out.gradient, active) if out.gradient is not None else None
-            sdf_c = _scatter(out.sdf, active) if out.sdf is not None else None
-            if out.normal is not None:
-                normal_c = _scatter(out.normal, active)
-            elif out.gradient is not None:
-                normal_c = _scatter(torch.nn.functional.normalize(out.gradient, dim=-1, eps=1e-12), active)
-            else:
-                normal_c = None
-        else:
-            sigma_c = samples.t.new_zeros((r, width))
-            rgb_c = samples.t.new_zeros((r, width, 3))
-            grad_c = normal_c = sdf_c = None
+    optional = _Optional()
+    chunks, weight_parts = [], []
+    for s0 in range(0, s, width):
+        s1 = min(s, s0 + width)
+        active = samples.valid[:, s0:s1] & (log_t_run >= log_threshold)[:, None]
+        chunk = _chunk_fields(samples, field_fn, active, s0, s1, optional)
+        weights, log_t_run = _chunk_weights(chunk.sigma, samples.deltas[:, s0:s1], log_t_run, early_stop_transmittance)
+        chunks.append(chunk)
+        weight_parts.append(weights)
+    return _output(samples, background, chunks, weight_parts, optional)
 
-        tau = sigma_c * deltas[:, s0:s1]  # optical depth of each sample; 0 where not active
-        cum = torch.cumsum(tau, dim=1)
-        log_t = log_t_run[:, None] - (cum - tau)  # exclusive cumulative sum
-        transmittance = torch.exp(log_t)
-        alpha = -torch.expm1(-tau)  # 1 - exp(-tau) without cancellation for small tau
-        weights_c = alpha * transmittance
-        if early_stop_transmittance is not None:
-            weights_c = torch.where(transmittance >= early_stop_transmittance, weights_c, 0.0)
-        log_t_run = log_t_run - cum[:, -1]
 
-        sigma_parts.append(sigma_c)
-        rgb_parts.append(rgb_c)
-        weight_parts.append(weights_c)
-        valid_parts.append(active)
-        grad_parts.append(grad_c if grad_c is not None else samples.t.new_zeros((r, width, 3)))
-        normal_parts.append(normal_c if normal_c is not None else samples.t.new_zeros((r, width, 3)))
-        sdf_parts.append(sdf_c if sdf_c is not None else samples.t.new_zeros((r, width)))
+def _checked_background(samples: RaySamples, background: Tensor) -> Tensor:
+    """The background as (R, 3) in the samples' dtype and device; ValueError for another shape."""
+    r = samples.valid.shape[0]
+    if background.shape not in ((3,), (r, 3)):
+        raise ValueError(f"render_rays: background has shape {tuple(background.shape)}, expected (3,) or ({r}, 3)")
+    return background.to(samples.t).expand(r, 3)
 
+
+@dataclass
+class _Optional:
+    """Whether the field returns a gradient and an SDF (None until its first call); every call must agree."""
+
+    gradient: bool | None = None
+    sdf: bool | None = None
+
+    def check(self, out: FieldOutput) -> None:
+        if self.gradient is None:
+            self.gradient, self.sdf = out.gradient is not None, out.sdf is not None
+        if self.gradient != (out.gradient is not None) or self.sdf != (out.sdf is not None):
+            raise ValueError("field_fn must return the same optional outputs on every call")
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """The field's outputs on sample slots s0:s1 of every ray, zero where not active."""
+
+    sigma: Tensor  # (R, W)
+    rgb: Tensor  # (R, W, 3)
+    gradient: Tensor  # (R, W, 3)
+    normal: Tensor  # (R, W, 3)
+    sdf: Tensor  # (R, W)
+    active: Tensor  # (R, W) bool
+    optional: _Optional
+
+
+def _chunk_fields(samples: RaySamples, field_fn: FieldFn, active: Tensor, s0: int, s1: int,
+                  optional: _Optional) -> _Chunk:
+    """Call the field on the active samples of slots s0:s1 (not at all when none is active)."""
+    r, width = active.shape[0], s1 - s0
+    zeros3 = samples.t.new_zeros((r, width, 3))
+    m = int(active.sum())
+    if m == 0:
+        return _Chunk(samples.t.new_zeros((r, width)), zeros3, zeros3, zeros3, samples.t.new_zeros((r, width)),
+                      active, optional)
+    out = FieldOutput.coerce(field_fn(samples.positions[:, s0:s1][active]), m)
+    optional.check(out)
+    if out.normal is not None:
+        normal = _scatter(out.normal, active)
+    elif out.gradient is not None:
+        normal = _scatter(torch.nn.functional.normalize(out.gradient, dim=-1, eps=1e-12), active)
+    else:
+        normal = zeros3
+    return _Chunk(
+        sigma=_scatter(out.sigma, active), rgb=_scatter(out.rgb, active),
+        gradient=_scatter(out.gradient, active) if out.gradient is not None else zeros3, normal=normal,
+        sdf=_scatter(out.sdf, active) if out.sdf is not None else samples.t.new_zeros((r, width)),
+        active=active, optional=optional,
+    )
+
+
+def _chunk_weights(sigma: Tensor, deltas: Tensor, log_t_run: Tensor,
+                   early_stop_transmittance: float | None = None) -> tuple[Tensor, Tensor]:
+    """Compositing weights (R, W) of a chunk given the log transmittance (R,) before it, and the log
+    transmittance after it; weights where T < early_stop_transmittance are zeroed."""
+    tau = sigma * deltas  # optical depth of each sample; 0 where not active
+    cum = torch.cumsum(tau, dim=1)
+    log_t = log_t_run[:, None] - (cum - tau)  # exclusive cumulative sum
+    transmittance = torch.exp(log_t)
+    alpha = -torch.expm1(-tau)  # 1 - exp(-tau) without cancellation for small tau
+    weights = alpha * transmittance
+    if early_stop_transmittance is not None:
+        weights = torch.where(transmittance >= early_stop_transmittance, weights, 0.0)
+    return weights, log_t_run - cum[:, -1]
+
+
+def _output(samples: RaySamples, background: Tensor, chunks: list[_Chunk], weight_parts: list[Tensor],
+            optional: _Optional) -> RenderOutput:
+    """Composite the chunks' colors, depths and normals into a RenderOutput."""
     weights = _join(weight_parts)
-    rgb_samples = _join(rgb_parts)
-    normals = _join(normal_parts)
+    rgb_samples = _join([c.rgb for c in chunks])
+    normals = _join([c.normal for c in chunks])
     opacity = weights.sum(dim=1)
     rgb = (weights[..., None] * rgb_samples).sum(dim=1) + (1.0 - opacity)[:, None] * background
     return RenderOutput(
@@ -228,13 +266,13 @@ def render_rays(
         depth=(weights * samples.t).sum(dim=1),
         normal=(weights[..., None] * normals).sum(dim=1),
         weights=weights,
-        sigma=_join(sigma_parts),
+        sigma=_join([c.sigma for c in chunks]),
         t=samples.t,
-        valid=_join(valid_parts),
+        valid=_join([c.active for c in chunks]),
         # A field never called (no valid sample) counts as having both, all zeros, so that the
         # losses see an empty selection instead of a missing tensor.
-        gradient=_join(grad_parts) if has_grad is not False else None,
-        sdf=_join(sdf_parts) if has_sdf is not False else None,
+        gradient=_join([c.gradient for c in chunks]) if optional.gradient is not False else None,
+        sdf=_join([c.sdf for c in chunks]) if optional.sdf is not False else None,
     )
 
 
@@ -286,8 +324,8 @@ def render_image(
         occupied_fn: e.g. ``grid.is_occupied`` after ``grid.rebuild`` for this frame.
         num_samples: bins per ray.
         background: (3,) color, default white.
-        chunk_rays: rays per :func:`render_rays` call.
-        early_stop_transmittance: see :func:`render_rays`.
+        chunk_rays: rays per call of the renderer.
+        early_stop_transmittance: see :func:`march_rays`; None renders every sample (`render_rays`).
 
     Returns:
         ImageRender with (H, W, ...) maps.
@@ -302,12 +340,10 @@ def render_image(
     for start in range(0, rays.num_rays, chunk_rays):
         sub = rays.slice(start, start + chunk_rays)
         samples = sample_along_rays(sub, num_samples, occupied_fn, stratified=False)
-        out = render_rays(
-            samples,
-            field_fn,
-            background.to(origins),
-            early_stop_transmittance=early_stop_transmittance,
-        )
+        if early_stop_transmittance is None:
+            out = render_rays(samples, field_fn, background.to(origins))
+        else:
+            out = march_rays(samples, field_fn, background.to(origins), early_stop_transmittance=early_stop_transmittance)
         rgb.append(out.rgb.detach())
         opacity.append(out.opacity.detach())
         depth.append(out.depth.detach())
