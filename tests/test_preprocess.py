@@ -71,7 +71,7 @@ def test_boxes_keep_room_for_clothes_beyond_the_template(small_run):
     (Fast-SNARF's depth squeeze alone cut a heavy subject's clothed back), and hold the clothed truth."""
     import trimesh
 
-    from stages.preprocess import GRID_MARGIN_M
+    from igavatar.capture.shape_prior import GRID_MARGIN_M
 
     subject = np.load(small_run / "dataset" / "subject.npz")
     template = np.asarray(trimesh.load(small_run / "dataset" / "template.ply", process=False).vertices)

@@ -18,6 +18,7 @@ from pathlib import Path
 import trimesh
 
 import stages.preprocess as preprocess
+import igavatar.capture.shape_prior as shape_prior
 from igavatar.avatar.canonical_report import canonical_truth
 from igavatar.avatar.dataset import read_dataset
 from igavatar.metrics.geometry import closest_points_on_mesh, contains_points
@@ -28,14 +29,14 @@ def main() -> None:
     parser.add_argument("--capture", type=Path, required=True, help="a synthetic capture (igavatar synth)")
     args = parser.parse_args()
     recorded = []
-    original = preprocess.hull_prior_mesh
+    original = shape_prior.hull_prior_mesh
 
     def recording(cells):
         recorded.append(cells)
         return original(cells)
 
     # The verdicts are those preprocess meshes into its prior, so listen in on that call.
-    preprocess.hull_prior_mesh = recording
+    shape_prior.hull_prior_mesh = recording
     with tempfile.TemporaryDirectory() as tmp:
         preprocess.run_preprocess(preprocess.PreprocessOptions(capture=args.capture, out=Path(tmp) / "dataset",
                                                                shape_prior="visual-hull"))
@@ -44,7 +45,7 @@ def main() -> None:
     if truth is None:
         raise SystemExit(f"{args.capture}: no ground_truth/clothed_rest.npz on this skeleton (a synthetic capture is needed)")
     cells = recorded[0]
-    cell = preprocess.HULL_CELL_M
+    cell = shape_prior.HULL_CELL_M
     x = cells.points.numpy().astype("float64")
     mesh = trimesh.Trimesh(*truth, process=False)
     inside = contains_points(mesh, x, watertight=True)
