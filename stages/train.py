@@ -83,7 +83,7 @@ class TrainOptions:
     resume: bool = False
     #: Train even when `out` holds a model of this dataset and these options (else: skipped).
     force: bool = False
-    #: None: the preset's (off: measured, it does not yet pay for its time; DESIGN.md "Video in").
+    #: None: the preset's (off: measured, it does not yet pay for its time; docs/DESIGN.md "Video in").
     refine_poses: bool | None = None
     pose_lr: float | None = None
     pose_prior_weight: float | None = None

@@ -1,4 +1,4 @@
-"""The one-way layering of DESIGN.md holds: CLI -> stages -> igavatar library -> schemas, and inside
+"""The one-way layering of docs/DESIGN.md holds: CLI -> stages -> igavatar library -> schemas, and inside
 the library each package imports only packages below it, with no import cycle between modules."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ FORBIDDEN = {
 }
 # inside the library: the renderer takes fields as callables and imports no model class
 FORBIDDEN_SUBPACKAGES = {"igavatar/render": {"igavatar.model"}}
-# The library's packages, bottom up (DESIGN.md, "Layers"): a package imports only packages of a
+# The library's packages, bottom up (docs/DESIGN.md, "Layers"): a package imports only packages of a
 # lower level (and `igavatar.errors` / `igavatar.__init__`, level 0).
 LIBRARY_LEVELS: tuple[tuple[str, ...], ...] = (
     ("artifacts", "geometry", "kernels"),

@@ -8,7 +8,7 @@
 MediaPipe 0.10.14 ships the BlazePose "full" landmark model, its detector and the selfie
 segmentation model inside its wheel, so nothing is downloaded (later wheels fetch their models at
 run time). Its declared dependencies pull the non-headless OpenCV and JAX, which the solutions do
-not use, so igavatar installs it with `--no-deps` beside the `video` extra (README, DESIGN.md).
+not use, so igavatar installs it with `--no-deps` beside the `video` extra (README, docs/DESIGN.md).
 
 BlazePose tracks one person. The selfie segmentation model sees every person, so a second person
 shows up as foreground that the tracked person's mask does not cover (igavatar.capture.video_checks).

@@ -316,7 +316,7 @@ def silhouette_offset(beta: float, radius: float = SILHOUETTE_RADIUS_M) -> float
     which is ln 2 (opacity 1/2) at `d = beta ln(sqrt(2 pi r / beta) / (2 ln 2))`: 2.4 beta for an
     arm (r = 4 cm at beta = 1 mm), 2.9 beta at r = 10 cm, 3.1 beta for a torso (r = 15 cm); 0 when
     beta is not small against r (there is no such tail then). Fitting that silhouette to the masks
-    leaves the zero level this far inside the subject (DESIGN.md, Geometry); meshes are made at
+    leaves the zero level this far inside the subject (docs/DESIGN.md, Geometry); meshes are made at
     this level set (igavatar.model.avatar.SURFACE_LEVELS).
     """
     beta = float(beta)

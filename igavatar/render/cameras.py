@@ -3,7 +3,7 @@
     K, w2c = turntable_cameras(box_min, box_max, n_frames=60, height=256, width=256, up=up, front=front)
     K_small = resize_intrinsics(K_dataset, (512, 512), (256, 256))
 
-Conventions (DESIGN.md): OpenCV cameras (x right, y down, z forward), ``w2c`` (4, 4)
+Conventions (docs/DESIGN.md): OpenCV cameras (x right, y down, z forward), ``w2c`` (4, 4)
 world-to-camera, ``K`` (3, 3) in pixels with pixel centers at integer coordinates, so the image
 center is ``((W - 1) / 2, (H - 1) / 2)``. Every function is device-agnostic and returns float32
 tensors on the device of its first tensor argument (arithmetic is done in float64).

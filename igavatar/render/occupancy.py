@@ -19,7 +19,7 @@ a density function that needs autograd internally (e.g. analytic gradients) must
 The box is an argument of :meth:`update` and :meth:`rebuild`, never frozen to the first frame.
 When it changes, the cached densities are resampled (trilinearly, zero outside the old box) from
 the old box onto the new one so the running maximum keeps its meaning in space, not in cell index.
-Layout follows DESIGN.md: fields are (D, H, W) with D <-> z, H <-> y, W <-> x.
+Layout follows docs/DESIGN.md: fields are (D, H, W) with D <-> z, H <-> y, W <-> x.
 """
 
 from __future__ import annotations

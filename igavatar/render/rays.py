@@ -3,7 +3,7 @@
     origins, directions = pixel_rays(K, w2c, pixel_grid(H, W, device=K.device))
     rays = rays_in_box(origins, directions, box_min, box_max)   # RayBundle with near/far
 
-Conventions (DESIGN.md): OpenCV camera (x right, y down, z forward), ``K`` (3, 3) in pixels,
+Conventions (docs/DESIGN.md): OpenCV camera (x right, y down, z forward), ``K`` (3, 3) in pixels,
 ``w2c`` (4, 4) world-to-camera, pixel centers at integer coordinates (pixel (u, v) covers
 [u - 0.5, u + 0.5]). Directions are unit length, so the ray parameter ``t`` is a distance in
 meters, and ``near``/``far`` are distances along the ray.

@@ -208,7 +208,7 @@ def preset(name: str) -> TrainConfig:
         # Fewer rays per step than the paper make each step noisier: a lower learning rate for
         # the networks, a warm-up, more background in the patches and a later non-rigid start
         # keep the shape prior from being blown apart early (measured on the synthetic subject).
-        # The rendered silhouette sits ~2 beta outside the SDF's zero level (DESIGN.md, Geometry),
+        # The rendered silhouette sits ~2 beta outside the SDF's zero level (docs/DESIGN.md, Geometry),
         # so the surface is pulled ~2 beta inside the masks: capping beta down to 1 mm (3 mm
         # before) cut in-distribution CD-L1 from 10.0 to 6.2 mm and raised IoU from 0.78 to 0.87
         # on the stripes-shirt subject (tests/benchmarks/results/geometry.md).

@@ -6,7 +6,7 @@
 
 Canonical space that no training ray reaches through root finding is otherwise never constrained
 (between the thighs of a wide-legged canonical pose, beyond the hands), and training rays alone
-let a thin limb fade (see METHOD notes in DESIGN.md). Forward skinning needs no root finding: every
+let a thin limb fade (see METHOD notes in docs/DESIGN.md). Forward skinning needs no root finding: every
 canonical grid point is pushed into every training frame by LBS and projected into its mask. A
 point that a robust number of views see as background is free space. Since the subject lies inside
 every mask, its surface lies inside the hull, so at a free point the true SDF is at least the
