@@ -32,7 +32,6 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import imageio
 import numpy as np
 import torch
@@ -41,6 +40,7 @@ import trimesh
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.manifest import InputRecord, build_manifest
 from igavatar.artifacts.targets import check_output_target
+from igavatar.artifacts.png import png_bytes
 from igavatar.avatar.boxes import posed_boxes
 from igavatar.avatar.cameras import CameraSequence, camera_file, capture_camera, orbit_cameras
 from igavatar.avatar.dataset import read_dataset
@@ -168,13 +168,6 @@ def _cameras(model: ModelArtifact, options: AnimateOptions, motion: PoseSequence
 
 
 # ---------------------------------------------------------------------------------------- output
-def _png_bytes(rgb: np.ndarray) -> bytes:
-    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return data.tobytes()
-
-
 def _even_frame(rgb: np.ndarray) -> np.ndarray:
     """H.264 (yuv420p) needs even sizes: repeat the last row/column when one is odd."""
     h, w = rgb.shape[:2]
@@ -247,7 +240,7 @@ def _render_frames(tmp: Path, model: ModelArtifact, motion: PoseSequence, boxes:
                 rendered.render_cpu_s += time.process_time() - cpu_tick
                 rendered.coverage.append(float((image.opacity > 0.5).float().mean()))
                 name = _frame_name(i, n_frames)
-                (tmp / "frames" / f"{name}.png").write_bytes(_png_bytes(rgb))
+                (tmp / "frames" / f"{name}.png").write_bytes(png_bytes(rgb))
                 writer.append_data(_even_frame(rgb))
                 if surface is not None:
                     tick = time.perf_counter()

@@ -38,14 +38,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 import trimesh
 
-from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
+from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.manifest import InputRecord, build_manifest, validate_against
 from igavatar.artifacts.targets import check_output_target
+from igavatar.artifacts.png import write_png
 from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
 from igavatar.avatar.model import ModelArtifact, ModelManifest, load_model, read_model_manifest
 from igavatar.avatar.surfaces import canonical_surface
@@ -149,13 +149,6 @@ def _check_compatible(model: ModelArtifact, dataset: DatasetArtifact) -> None:
 def render_size(dataset_hw: tuple[int, int], scale: float) -> tuple[int, int]:
     h, w = (max(MIN_IMAGE_SIDE, round(side * scale)) for side in dataset_hw)
     return int(h), int(w)
-
-
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise InputError(f"{path}: PNG encoding failed")
-    atomic_write_bytes(path, data.tobytes())
 
 
 def _without_missing_scans(options: EvalOptions) -> tuple[EvalOptions, str | None]:
@@ -374,7 +367,7 @@ def _write_figures(tmp: Path, document: dict, records: list[dict], names: list[s
     series = {k: [r["values"][k] for r in records] for k in METRIC_KEYS if any(r["values"][k] is not None for r in records)}
     if series:
         curves = metric_curves_image(names, series, {k: document["metrics"][k]["mean"] for k in series})
-        _write_png(tmp / "plots" / "metric_curves.png", curves)
+        write_png(tmp / "plots" / "metric_curves.png", curves)
         document["files"]["per-frame curves"] = "plots/metric_curves.png"
     if worst is not None:
         _, name, posed_v, error_mm = worst
@@ -384,7 +377,7 @@ def _write_figures(tmp: Path, document: dict, records: list[dict], names: list[s
     if canonical is not None and canonical.section is not None:
         document["canonical"] = canonical.section
     if canonical is not None and canonical.picture is not None:
-        _write_png(tmp / "geometry" / "canonical_views.png", canonical.picture)
+        write_png(tmp / "geometry" / "canonical_views.png", canonical.picture)
         document["files"]["canonical mesh, front and side, beside the truth and the template"] = "geometry/canonical_views.png"
 
 
@@ -480,7 +473,7 @@ def _frame_geometry_record(
     record["geometry"] = details
     record["notes"] += notes
     panel = error_mesh_panel(gt_v, gt_f, posed_v, faces, error_mm, K_panel, w2c, panel_hw[0], panel_hw[1], ERROR_VMAX_MM)
-    _write_png(tmp / "geometry" / f"{name}.png", panel)
+    write_png(tmp / "geometry" / f"{name}.png", panel)
     record["files"]["error_render"] = f"geometry/{name}.png"
     record["seconds"]["geometry"] = time.perf_counter() - tick
     return error_mm
@@ -510,7 +503,7 @@ def _frame_image_record(
         record["values"]["lpips_full"] = lpips_fn(pred_rgb, gt_rgb)
     record["image"] = {"height": int(pred_rgb.shape[0]), "width": int(pred_rgb.shape[1]),
                        "mean_opacity": float(render.opacity.mean())}
-    _write_png(tmp / "images" / f"{name}.png", side_by_side(gt_rgb, pred_rgb, IMAGE_ERROR_VMAX))
+    write_png(tmp / "images" / f"{name}.png", side_by_side(gt_rgb, pred_rgb, IMAGE_ERROR_VMAX))
     record["files"]["side_by_side"] = f"images/{name}.png"
 
 

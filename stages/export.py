@@ -62,6 +62,7 @@ import trimesh
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.manifest import InputRecord, build_manifest
 from igavatar.artifacts.targets import check_output_target
+from igavatar.artifacts.png import png_bytes
 from igavatar.avatar.glb import write_model_glb
 from igavatar.avatar.model import ModelArtifact, load_model, read_model_manifest
 from igavatar.avatar.poses import PoseSequence, read_poses
@@ -82,7 +83,6 @@ from igavatar.mesh.gltf import INFLUENCE_CHOICES, INFLUENCES, floor_origin_offse
 from igavatar.mesh.maps import CAMERA_FOV_DEG, frontal_camera, mesh_maps
 from igavatar.mesh.engine_mesh import DEFAULT_GLB_FACES, engine_mesh
 from igavatar.mesh.skin_drift import lbs_sparse, skin_drift_mm, sparse_weight_sets
-from igavatar.mesh.texture import png_bytes
 from igavatar.mesh.textured_mesh import TexturedMesh, textured_mesh, textured_obj
 from igavatar.model.avatar import SURFACE_LEVELS
 from igavatar.model.posed import PosedAvatar

@@ -32,12 +32,12 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import trimesh
 
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.targets import check_output_target
+from igavatar.artifacts.png import write_png
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, build_manifest, read_artifact
 from igavatar.capture.body_fit import BODY_FIT_VERSION, BODY_FITS, fits_body, fitted_subject
 from igavatar.capture.capture_v1 import CaptureV1, load_image, load_mask
@@ -212,14 +212,14 @@ def _write_frames(tmp: Path, capture: CaptureV1, subject: PosedSubject, canonica
             mask = _frame_mask(capture, i, rgb, mask, K, subject, canonical)
             if i in hull_views:
                 hull_masks[i] = mask
-            cv2.imwrite(str(tmp / "images" / f"{frame}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-            cv2.imwrite(str(tmp / "masks" / f"{frame}.png"), mask.astype(np.uint8) * 255)
+            write_png(tmp / "images" / f"{frame}.png", rgb)
+            write_png(tmp / "masks" / f"{frame}.png", mask.astype(bool))
             if i in sheet_frames:
                 joints_uv, _ = project_points(K[i], capture.w2c[i], canonical.posed_joints[i].double().numpy())
                 sheet_items.append((rgb, mask, joints_uv, frame if capture.has_masks else f"{frame} (est.)"))
             advance(1)
     sheet = contact_sheet(sheet_items, subject.skeleton.parents)
-    cv2.imwrite(str(tmp / "contact_sheet.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    write_png(tmp / "contact_sheet.png", sheet)
     return hull_masks
 
 

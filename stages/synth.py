@@ -17,7 +17,6 @@ import resource
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 import trimesh
@@ -25,6 +24,7 @@ import trimesh
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.manifest import build_manifest
 from igavatar.artifacts.targets import check_output_target
+from igavatar.artifacts.png import write_png
 from igavatar.body.anny_body import ANNY_PHENOTYPE_LABELS, AnnyBody, load_anny, resolve_phenotype
 from igavatar.body.motions import Motion, motion_by_name, turntable, walk
 from igavatar.body.rotations import rigid_matrix
@@ -356,8 +356,8 @@ def _render_frames(tmp: Path, frames: list[str], x_posed: np.ndarray, subject: C
             caster = MeshRayCaster(x_world, subject.faces)
             normals = vertex_normals(x_world, subject.faces)
             frame = render_mesh(caster, rays, _shader(subject, texture, normals, light), background=BACKGROUND)
-            cv2.imwrite(str(tmp / "images" / f"{name}.png"), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-            cv2.imwrite(str(tmp / "masks" / f"{name}.png"), frame.mask.astype(np.uint8) * 255)
+            write_png(tmp / "images" / f"{name}.png", frame.rgb)
+            write_png(tmp / "masks" / f"{name}.png", frame.mask.astype(bool))
             trimesh.Trimesh(x_world, subject.faces, process=False).export(tmp / "scans" / f"{name}.ply")
             advance(1)
 

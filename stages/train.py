@@ -32,6 +32,7 @@ from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
 from igavatar.artifacts.storage import storage_errors
 from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file, sha256_json
+from igavatar.artifacts.png import write_png
 from igavatar.avatar.dataset import PRIOR_FILE, DatasetArtifact, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.errors import IgavatarError, InputError, Terminated
@@ -225,11 +226,6 @@ def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) ->
     return np.concatenate([gt, rgb, normal_rgb], axis=1), float(psnr)
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    atomic_write_bytes(path, data.tobytes())
-
-
 def work_directory(out: Path) -> Path:
     """Where a run writing `out` keeps its checkpoints: `<out>.work/` beside it."""
     return out.with_name(out.name + ".work")
@@ -323,7 +319,7 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: _TrainingLog, save_c
                     save_checkpoint()
                 if config.validate_every and trainer.step % config.validate_every == 0 and trainer.step < trainer.total_steps:
                     panel, _ = _validation_png(trainer, validation_frame, config.validation_scale, config.validation_samples)
-                    _write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
+                    write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
                 rate = trainer.step / max(trainer.seconds, 1e-9)
                 advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
     except KeyboardInterrupt as exc:
@@ -376,7 +372,7 @@ def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, sh
     if trainer.pose_refiner is not None:
         _write_refined_poses(tmp / REFINED_POSES_FILE, trainer)
     for name, (image, _) in validation.items():
-        _write_png(tmp / "validation" / f"{name}.png", image)
+        write_png(tmp / "validation" / f"{name}.png", image)
 
 
 def _checkpoint_of_this_run(checkpoint: Path, run_key: str, config_json: dict, dataset_sha: str) -> dict:

@@ -31,6 +31,7 @@ import torch
 from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.manifest import InputRecord, build_manifest
 from igavatar.artifacts.targets import check_output_target
+from igavatar.artifacts.png import write_png
 from igavatar.body.anny_body import AnnyBody, load_anny
 from igavatar.body.skeleton import forward_kinematics
 from igavatar.capture.contact_sheet import contact_sheet
@@ -197,8 +198,8 @@ def _write_capture(tmp: Path, frames: VideoFrames, tracks: PersonTracks, body: A
     for sub in ("images", "masks"):
         (tmp / sub).mkdir()
     for name, image, probability in zip(frames.names, frames.images, tracks.masks):
-        cv2.imwrite(str(tmp / "images" / f"{name}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(tmp / "masks" / f"{name}.png"), person_mask(probability))
+        write_png(tmp / "images" / f"{name}.png", image)
+        write_png(tmp / "masks" / f"{name}.png", person_mask(probability))
     np.savez(tmp / "cameras.npz", K=camera.K, w2c=camera.w2c, height=np.int64(camera.height), width=np.int64(camera.width))
     pose_parameters = body.pose_parameters_from_local_rotations(torch.as_tensor(fit.local_rotations),
                                                                 torch.as_tensor(fit.root_translation))
@@ -207,7 +208,7 @@ def _write_capture(tmp: Path, frames: VideoFrames, tracks: PersonTracks, body: A
     np.savez(tmp / "landmarks.npz", image_xy=tracks.image_xy, visibility=tracks.visibility,
              world_xyz=tracks.world_xyz, fit_residual_px=fit.residual_px.astype(np.float32))
     sheet = _fitted_sheet(frames, body, fit, camera)
-    cv2.imwrite(str(tmp / "contact_sheet.png"), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    write_png(tmp / "contact_sheet.png", sheet)
     (tmp / "capture.json").write_text(json.dumps(meta, indent=2) + "\n")
 
 

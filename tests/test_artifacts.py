@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from igavatar.artifacts.atomic import atomic_directory
@@ -141,3 +142,33 @@ def test_single_files_and_artifact_folders_get_the_usual_permissions(tmp_path):
         assert stat.S_IMODE((tmp_path / "mesh").stat().st_mode) == 0o755
     finally:
         os.umask(old)
+
+
+def test_png_writer_round_trips_and_fails_loudly(tmp_path, monkeypatch):
+    """One PNG writer: RGB and gray (bool masks as 0/255) round-trip; a bad array is a ValueError
+    and a refused write a StorageError naming the file (cv2.imwrite returned False and wrote nothing)."""
+    import errno
+    import os
+
+    import cv2
+
+    from igavatar.artifacts import atomic
+    from igavatar.artifacts.png import write_png
+    from igavatar.errors import StorageError
+
+    rgb = np.random.default_rng(0).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    write_png(tmp_path / "a" / "rgb.png", rgb)
+    np.testing.assert_array_equal(cv2.cvtColor(cv2.imread(str(tmp_path / "a" / "rgb.png")), cv2.COLOR_BGR2RGB), rgb)
+    mask = rgb[..., 0] > 127
+    write_png(tmp_path / "mask.png", mask)
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "mask.png"), cv2.IMREAD_GRAYSCALE), mask * 255)
+    with pytest.raises(ValueError, match=r"\(5, 7, 4\) uint8"):
+        write_png(tmp_path / "bad.png", np.zeros((5, 7, 4), np.uint8))
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(atomic.os, "fdopen", lambda fd, mode: type("F", (), {"__enter__": lambda s: s, "__exit__": lambda s, *a: False, "write": full})())
+    with pytest.raises(StorageError, match="full.png: no space left"):
+        write_png(tmp_path / "full.png", rgb)
+    assert not (tmp_path / "full.png").exists()

@@ -180,7 +180,7 @@ def test_train_on_a_full_disk_leaves_no_work_dir_and_keeps_the_model(cli_runner,
 
     monkeypatch.setattr(stages.train, "save_state", _raise(errno.ENOSPC))
     result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(own_model),
-                                     "--preset", "tiny", "--device", "cpu", "-q"])
+                                     "--preset", "tiny", "--device", "cpu", "-q", "--force"])
     _one_error_line(result, 5, "no space left")
     assert not own_model.with_name("model.work").exists()
     assert _tree_digest(own_model) == before

@@ -11,7 +11,8 @@ import pytest
 import trimesh
 
 from igavatar.errors import InputError
-from igavatar.mesh.texture import bake_texture, dilate, obj_uv, png_bytes, rasterize_uv, unwrap
+from igavatar.artifacts.png import png_bytes
+from igavatar.mesh.texture import bake_texture, dilate, obj_uv, rasterize_uv, unwrap
 
 SIZE = 256
 

@@ -2,7 +2,7 @@
 
     atlas = unwrap(vertices, faces, size=1024)                 # xatlas charts packed in a square
     image, covered = bake_texture(atlas.vertices(vertices), atlas.faces, atlas.uv, color_fn, 1024)
-    png = png_bytes(image)
+    png = png_bytes(image)                                     # igavatar.artifacts.png
 
 UV convention: `UVAtlas.uv` (V', 2) is glTF's TEXCOORD_0, in [0, 1] with u to the right and v
 *down* from the image's top row (row = v * size). OBJ's vt has v up: `obj_uv` flips it.
@@ -229,9 +229,4 @@ def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bottom * fy
 
 
-def png_bytes(image: np.ndarray) -> bytes:
-    """PNG encoding of an (H, W, 3) uint8 RGB image."""
-    ok, encoded = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise InputError("png_bytes: OpenCV could not encode the texture")
-    return encoded.tobytes()
+
