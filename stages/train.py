@@ -39,9 +39,9 @@ from igavatar.errors import IgavatarError, InputError, Terminated
 from igavatar.interrupts import deferred_interrupts, raise_if_interrupted
 from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
-from igavatar.training.checkpoint import load_state, save_state
+from igavatar.training.checkpoint import save_state
 from igavatar.training.config import TrainConfig, preset, with_overrides
-from igavatar.training.shape_init import fit_sdf_to_template, template_sdf_samples
+from igavatar.training.run_state import cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
 from stages.kernels import build_kernels, resolve_device
@@ -146,11 +146,6 @@ def config_to_json(config: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
-#: Bump when the shape initialization's targets or optimization change, so that caches written
-#: by an older version are not reused as if they were the same fit.
-SHAPE_INIT_VERSION = 2
-
-
 def _body_template(dataset: DatasetArtifact) -> tuple[np.ndarray, np.ndarray] | None:
     """The body model's naked template (vertices, faces), or None for a capture without one."""
     path = dataset.body_template_path
@@ -162,51 +157,25 @@ def _body_template(dataset: DatasetArtifact) -> tuple[np.ndarray, np.ndarray] | 
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
-def _shape_init_key(config: TrainConfig, template_sha: str | None, canonical_box: np.ndarray) -> str:
-    """Everything that decides the shape initialization's result (the cache is reused only on a match)."""
-    return sha256_json({"version": SHAPE_INIT_VERSION, "sdf": dataclasses.asdict(config.avatar.sdf),
-                        "steps": config.shape_init_steps, "points": config.shape_init_points,
-                        "template": template_sha, "canonical_box": np.asarray(canonical_box, np.float64).round(7).tolist(),
-                        "seed": config.seed})
-
-
-def _snapshot(state: dict) -> dict:
-    """A copy of a state dict that shares no storage with the live parameters.
-
-    `state_dict()` returns views of the parameters: saved after training, they would hold the
-    trained SDF instead of the initial fit.
-    """
-    return {name: value.detach().clone() for name, value in state.items()}
-
-
 def _shape_initialize(
     avatar: Avatar, config: TrainConfig, dataset: DatasetArtifact, cache_paths: list[Path], progress: ProgressSink
 ) -> tuple[dict, float, Path | None]:
     """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds, the cache reused or None)."""
     template = dataset.path / PRIOR_FILE
     canonical_box = dataset.subject.canonical_box
-    key = _shape_init_key(config, sha256_file(template) if template.is_file() else None, canonical_box)
-    for path in cache_paths:
-        if path.is_file():
-            cached = load_state(path)
-            if cached.get("key") == key:
-                avatar.sdf_field.load_state_dict(cached["sdf"])
-                progress.status(f"shape initialization reused from {path}")
-                return cached, 0.0, path
+    key = shape_init_key(config, sha256_file(template) if template.is_file() else None, canonical_box)
+    cached, path = cached_shape_init(avatar, key, cache_paths)
+    if cached is not None:
+        progress.status(f"shape initialization reused from {path}")
+        return cached, 0.0, path
     started = time.perf_counter()
-    if template.is_file() and config.shape_init_steps > 0:
-        import trimesh
-
-        mesh = trimesh.load(template, process=False)
-        targets = template_sdf_samples(np.asarray(mesh.vertices), np.asarray(mesh.faces), canonical_box, seed=config.seed)
-        with progress.task("shape initialization", total=config.shape_init_steps) as advance:
-            fit_sdf_to_template(
-                avatar.sdf_field, targets, config.shape_init_steps, config.shape_init_points, seed=config.seed,
-                on_step=lambda step, loss: (raise_if_interrupted(), advance(1, loss=f"{loss:.4f}")),
-            )
-    else:
+    if not (template.is_file() and config.shape_init_steps > 0):
         progress.status("no template mesh: the SDF starts as a sphere")
-    return {"key": key, "sdf": _snapshot(avatar.sdf_field.state_dict())}, time.perf_counter() - started, None
+        return fit_shape(avatar, config, template, canonical_box, key, on_step=None), 0.0, None
+    with progress.task("shape initialization", total=config.shape_init_steps) as advance:
+        state = fit_shape(avatar, config, template, canonical_box, key,
+                          on_step=lambda step, loss: (raise_if_interrupted(), advance(1, loss=f"{loss:.4f}")))
+    return state, time.perf_counter() - started, None
 
 
 def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) -> tuple[np.ndarray, float]:
@@ -229,33 +198,6 @@ def _validation_png(trainer: Trainer, index: int, scale: float, samples: int) ->
 def work_directory(out: Path) -> Path:
     """Where a run writing `out` keeps its checkpoints: `<out>.work/` beside it."""
     return out.with_name(out.name + ".work")
-
-
-def _config_differences(old: dict, new: dict, prefix: str = "") -> list[str]:
-    """'key: old -> new' for every leaf of two resolved configs that differs (nested keys dotted)."""
-    differences = []
-    for key in sorted(set(old) | set(new)):
-        a, b = old.get(key), new.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            differences += _config_differences(a, b, f"{prefix}{key}.")
-        elif a != b:
-            differences.append(f"{prefix}{key}: {a} -> {b}")
-    return differences
-
-
-def _resume_mismatch(checkpoint: Path, state: dict, config_json: dict, dataset_sha: str) -> str:
-    """Why a checkpoint does not belong to this run, naming the options that differ."""
-    reasons = []
-    if "config" in state:
-        differences = _config_differences(json.loads(state["config"]), config_json)
-        if differences:
-            reasons.append("options differ (checkpoint -> now): " + "; ".join(differences[:4])
-                           + ("; ..." if len(differences) > 4 else ""))
-        if state.get("dataset_sha256") not in (None, dataset_sha):
-            reasons.append("the dataset changed since the checkpoint")
-    detail = ", ".join(reasons) or "it was written with another configuration or dataset"
-    return (f"--resume: {checkpoint} does not match this run: {detail}; "
-            "repeat the interrupted run's options, or start without --resume")
 
 
 def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
@@ -375,14 +317,6 @@ def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, sh
         write_png(tmp / "validation" / f"{name}.png", image)
 
 
-def _checkpoint_of_this_run(checkpoint: Path, run_key: str, config_json: dict, dataset_sha: str) -> dict:
-    """The checkpoint of an interrupted run with the same options and dataset; InputError if it is another's."""
-    state = load_state(checkpoint)
-    if state.get("run_key") != run_key:
-        raise InputError(_resume_mismatch(checkpoint, state, config_json, dataset_sha))
-    return state
-
-
 def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     clock = StageClock()
     dataset = read_dataset(Path(options.dataset))
@@ -408,7 +342,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     dataset_sha = sha256_file(dataset.path / "manifest.json")
     run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
     # Refused before anything in the work folder is touched.
-    resumed = _checkpoint_of_this_run(checkpoint, run_key, config_json, dataset_sha) if options.resume else None
+    resumed = checkpoint_of_this_run(checkpoint, run_key, config_json, dataset_sha) if options.resume else None
     shape_state, shape_seconds, reused_from = _shape_initialize(
         avatar, config, dataset, [work / "shape_init.npz", out / "shape_init.npz"], progress
     )

@@ -108,7 +108,9 @@ def test_ctrl_c_during_training_keeps_the_earlier_model(cli_runner, small_run, e
 
     before = _digest(earlier_model)
     if point == "shape-init-step":
-        real_fit = stages.train.fit_sdf_to_template
+        import igavatar.training.run_state as run_state
+
+        real_fit = run_state.fit_sdf_to_template
 
         def fit(field, targets, steps, batch, seed, on_step):
             def step(i, loss):
@@ -117,7 +119,7 @@ def test_ctrl_c_during_training_keeps_the_earlier_model(cli_runner, small_run, e
                 on_step(i, loss)
             return real_fit(field, targets, steps, batch, seed=seed, on_step=step)
 
-        monkeypatch.setattr(stages.train, "fit_sdf_to_template", fit)
+        monkeypatch.setattr(run_state, "fit_sdf_to_template", fit)
         needle = "interrupted"
     elif point == "training-step":
         real_step = Trainer.train_step
