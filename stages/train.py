@@ -15,9 +15,7 @@ the last one exactly, and Ctrl-C writes one before exiting.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import shutil
 import time
@@ -28,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from igavatar.artifacts.atomic import atomic_directory, atomic_write_bytes
+from igavatar.artifacts.atomic import atomic_directory
 from igavatar.artifacts.storage import storage_errors
 from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file, sha256_json
@@ -41,7 +39,7 @@ from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import save_state
 from igavatar.training.config import TrainConfig, preset, with_overrides
-from igavatar.training.run_state import cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
+from igavatar.training.run_state import TrainingLog, cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
 from stages.kernels import build_kernels, resolve_device
@@ -221,28 +219,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
         raise
 
 
-@dataclass
-class _TrainingLog:
-    """training_log.csv rows (kept across --resume) and the checkpoint they are saved with."""
-
-    path: Path
-    rows: list[dict]
-
-    @classmethod
-    def open(cls, path: Path, resume: bool) -> _TrainingLog:
-        rows = list(csv.DictReader(io.StringIO(path.read_text()))) if resume and path.is_file() else []
-        return cls(path, rows)
-
-    def save(self) -> None:
-        buffer = io.StringIO()
-        if self.rows:
-            writer = csv.DictWriter(buffer, fieldnames=list(self.rows[0]))
-            writer.writeheader()
-            writer.writerows(self.rows)
-        atomic_write_bytes(self.path, buffer.getvalue().encode())
-
-
-def _train_loop(trainer: Trainer, config: TrainConfig, log: _TrainingLog, save_checkpoint, validation_frame: int,
+def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_checkpoint, validation_frame: int,
                 work: Path, progress: ProgressSink) -> dict[str, float]:
     """Step until the end; checkpoint, log and validate on schedule. Ctrl-C/SIGTERM checkpoint and raise."""
     last: dict[str, float] = {}
@@ -304,7 +281,7 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
     }
 
 
-def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, shape_state: dict, log: _TrainingLog,
+def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, shape_state: dict, log: TrainingLog,
                        validation: dict) -> None:
     """weights.npz, subject.npz (the dataset's), shape_init.npz, training_log.csv and validation/*.png."""
     save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
@@ -364,7 +341,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     if resumed is not None:
         trainer.load_state_dict(resumed["trainer"])
         progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
-    log = _TrainingLog.open(work / "training_log.csv", options.resume)
+    log = TrainingLog.open(work / "training_log.csv", options.resume)
 
     def save_checkpoint() -> None:
         with deferred_interrupts():  # the checkpoint and its log rows are written together

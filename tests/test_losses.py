@@ -8,14 +8,11 @@ import math
 import pytest
 import torch
 
+from igavatar.model.fd_losses import curvature_loss, finite_difference_eikonal, finite_difference_gradient, finite_difference_terms
 from igavatar.model.losses import (
     LossWeights,
     alpha_loss,
-    curvature_loss,
     eikonal_loss,
-    finite_difference_eikonal,
-    finite_difference_gradient,
-    finite_difference_terms,
     linear_warmup,
     rgb_loss,
     smooth_loss_along_ray,

@@ -55,7 +55,9 @@ from igavatar.body.motions import body_to_world
 from igavatar.body.skeleton import Skeleton
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import vertex_normals
-from igavatar.mesh.gltf_parts import BinaryBuilder, animation_of, as_array, check_rotations, checked_animation
+from igavatar.mesh.gltf_parts import (
+    BinaryBuilder, animation_of, as_array, check_rotations, checked_animation, material_of,
+)
 
 INFLUENCES = 4
 """Default joint influences per vertex: one JOINTS_0/WEIGHTS_0 set, what every web engine reads."""
@@ -245,7 +247,7 @@ def write_rigged_glb(
     builder = BinaryBuilder()
     primitive = _primitive(builder, mesh, vertices_gltf, influences, skeleton.num_joints)
     nodes, inverse_bind = _skeleton_nodes(builder, skeleton, joints_gltf)
-    material, images, textures, samplers = _material(builder, mesh.texture_png)
+    material, images, textures, samplers = material_of(builder, mesh.texture_png)
     gltf = pygltflib.GLTF2(
         images=images, textures=textures, samplers=samplers,
         asset=pygltflib.Asset(version="2.0", generator="igavatar", extras={"igavatar": {
@@ -372,24 +374,6 @@ def _skeleton_nodes(builder: BinaryBuilder, skeleton: Skeleton, joints_gltf: np.
     return nodes, inverse_bind_accessor
 
 
-def _material(builder: BinaryBuilder, png: bytes | None) -> tuple[pygltflib.Material, list, list, list]:
-    """The material (vertex colours, or the embedded PNG) and the images, textures, samplers it uses."""
-    color = pygltflib.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
-    material = pygltflib.Material(name="vertex_color" if png is None else "texture", pbrMetallicRoughness=color,
-                                  doubleSided=False)
-    if png is None:
-        return material, [], [], []
-    builder.blob.extend(b"\0" * (-len(builder.blob) % 4))
-    builder.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(builder.blob), byteLength=len(png)))
-    builder.blob.extend(png)
-    images = [pygltflib.Image(name="base_color", mimeType="image/png", bufferView=len(builder.views) - 1)]
-    # Linear filtering with mipmaps; clamp, since the atlas charts never wrap.
-    samplers = [pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
-                                  wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)]
-    color.baseColorTexture = pygltflib.TextureInfo(index=0, texCoord=0)
-    return material, images, [pygltflib.Texture(sampler=0, source=0)], samplers
-
-
 def floor_origin_offset(vertices_gltf: np.ndarray, root_gltf: np.ndarray) -> np.ndarray:
     """(3,) translation that puts the origin on the floor under the root joint: the root's ground
     projection at the lowest vertex's height (glTF frame, +Y up).
@@ -399,4 +383,3 @@ def floor_origin_offset(vertices_gltf: np.ndarray, root_gltf: np.ndarray) -> np.
     capture's origin (Anny's: the pelvis) would sink the avatar 0.8 m into the floor.
     """
     return -np.array([root_gltf[0], vertices_gltf[:, 1].min(), root_gltf[2]], dtype=np.float64)
-

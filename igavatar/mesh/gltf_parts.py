@@ -1,10 +1,11 @@
 """The pieces of a GLB that igavatar.mesh.gltf's writer assembles: the binary buffer with its views
-and accessors, and the animation of a motion.
+and accessors, the animation of a motion, and the material.
 
     builder = BinaryBuilder()
     positions = builder.add(vertices.astype(np.float32), pygltflib.FLOAT, pygltflib.VEC3, pygltflib.ARRAY_BUFFER,
                             with_bounds=True)
     animation = animation_of(builder, rotations_gltf, translation_gltf, fps, root_offset)
+    material, images, textures, samplers = material_of(builder, png_bytes_or_none)
 """
 
 from __future__ import annotations
@@ -142,3 +143,21 @@ def animation_of(builder: BinaryBuilder, rotations: np.ndarray, translation: np.
     channels.append(pygltflib.AnimationChannel(
         sampler=num_joints, target=pygltflib.AnimationChannelTarget(node=0, path="translation")))
     return pygltflib.Animation(name="motion", samplers=samplers, channels=channels, extras={"fps": float(fps)})
+
+
+def material_of(builder: BinaryBuilder, png: bytes | None) -> tuple[pygltflib.Material, list, list, list]:
+    """The material (vertex colours, or the embedded PNG) and the images, textures, samplers it uses."""
+    color = pygltflib.PbrMetallicRoughness(baseColorFactor=[1.0, 1.0, 1.0, 1.0], metallicFactor=0.0, roughnessFactor=1.0)
+    material = pygltflib.Material(name="vertex_color" if png is None else "texture", pbrMetallicRoughness=color,
+                                  doubleSided=False)
+    if png is None:
+        return material, [], [], []
+    builder.blob.extend(b"\0" * (-len(builder.blob) % 4))
+    builder.views.append(pygltflib.BufferView(buffer=0, byteOffset=len(builder.blob), byteLength=len(png)))
+    builder.blob.extend(png)
+    images = [pygltflib.Image(name="base_color", mimeType="image/png", bufferView=len(builder.views) - 1)]
+    # Linear filtering with mipmaps; clamp, since the atlas charts never wrap.
+    samplers = [pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR_MIPMAP_LINEAR,
+                                  wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)]
+    color.baseColorTexture = pygltflib.TextureInfo(index=0, texCoord=0)
+    return material, images, [pygltflib.Texture(sampler=0, source=0)], samplers

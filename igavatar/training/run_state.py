@@ -5,17 +5,22 @@ decides it) and the checkpoint an interrupted run left (resumed only by the same
     state, path = cached_shape_init(avatar, key, [work / "shape_init.npz", out / "shape_init.npz"])
     state = state or fit_shape(avatar, config, template, canonical_box, key, on_step)
     resumed = checkpoint_of_this_run(work / "checkpoint.npz", run_key, config_json, dataset_sha)
+    log = TrainingLog.open(work / "training_log.csv", resume=True)   # rows kept across --resume
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import io
 import json
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from igavatar.artifacts.atomic import atomic_write_bytes
 from igavatar.artifacts.manifest import sha256_json
 from igavatar.errors import InputError
 from igavatar.model.avatar import Avatar
@@ -91,3 +96,24 @@ def checkpoint_of_this_run(checkpoint: Path, run_key: str, config_json: dict, da
     detail = ", ".join(reasons) or "it was written with another configuration or dataset"
     raise InputError(f"--resume: {checkpoint} does not match this run: {detail}; "
                      "repeat the interrupted run's options, or start without --resume")
+
+
+@dataclass
+class TrainingLog:
+    """training_log.csv rows (kept across --resume) and the checkpoint they are saved with."""
+
+    path: Path
+    rows: list[dict]
+
+    @classmethod
+    def open(cls, path: Path, resume: bool) -> TrainingLog:
+        rows = list(csv.DictReader(io.StringIO(path.read_text()))) if resume and path.is_file() else []
+        return cls(path, rows)
+
+    def save(self) -> None:
+        buffer = io.StringIO()
+        if self.rows:
+            writer = csv.DictWriter(buffer, fieldnames=list(self.rows[0]))
+            writer.writeheader()
+            writer.writerows(self.rows)
+        atomic_write_bytes(self.path, buffer.getvalue().encode())

@@ -23,12 +23,10 @@ import torch
 
 from igavatar.model.avatar import Avatar
 from igavatar.model.deformer import PreparedFrame
+from igavatar.model.fd_losses import curvature_loss, finite_difference_eikonal, finite_difference_terms
 from igavatar.model.losses import (
     alpha_loss,
-    curvature_loss,
     eikonal_loss,
-    finite_difference_eikonal,
-    finite_difference_terms,
     linear_warmup,
     rgb_loss,
     smooth_loss_along_ray,
