@@ -330,14 +330,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
     trainer = Trainer(config, data, avatar, device, body_template=body_template,
                       pose_refiner=_pose_refiner(config, dataset, data))
-    check = trainer.body_inside_check
-    if check is not None and not check["used"]:
-        progress.status(
-            "body-inside term off: " + ("the masks confirm no point of the body model's template" if not check["kept"] else
-            f"the body model's template spills past the masks (spill {check['spill']:.3f} > {check['max_spill']}: "
-            "the fit looks heavier than the subject, or the masks are tight; a fitted template with exact masks stays "
-            "under 0.02; --body-inside-max-spill 1 uses it anyway)")
-        )
+    _say_why_body_inside_is_off(trainer.body_inside_check, progress)
     if resumed is not None:
         trainer.load_state_dict(resumed["trainer"])
         progress.status(f"resumed from step {trainer.step} of {trainer.total_steps}")
@@ -369,6 +362,22 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
             peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()},
         )
     shutil.rmtree(work, ignore_errors=True)
+    return _summary(out, trainer, device, data_json, validation)
+
+
+def _say_why_body_inside_is_off(check: dict | None, progress: ProgressSink) -> None:
+    """A status line when the body-inside term was measured and not used (None: not asked for)."""
+    if check is None or check["used"]:
+        return
+    progress.status(
+        "body-inside term off: " + ("the masks confirm no point of the body model's template" if not check["kept"] else
+        f"the body model's template spills past the masks (spill {check['spill']:.3f} > {check['max_spill']}: "
+        "the fit looks heavier than the subject, or the masks are tight; a fitted template with exact masks stays "
+        "under 0.02; --body-inside-max-spill 1 uses it anyway)")
+    )
+
+
+def _summary(out: Path, trainer: Trainer, device: torch.device, data_json: dict, validation: dict) -> dict:
     return {
         "model": str(out), "steps": trainer.step, "device": str(device),
         "train_seconds": round(trainer.seconds, 1),
