@@ -121,7 +121,7 @@ def synth(
         Optional[list[str]], typer.Option(help="Anny phenotype value, repeatable: --phenotype gender=0.2 --phenotype weight=0.7 \\[default: the built-in subject's].")
     ] = None,
     garment: Annotated[str, typer.Option(help="Garment variant: shirt-trousers, dress, tight.")] = "shirt-trousers",
-    texture: Annotated[str, typer.Option(help="Texture variant: stripes, checker, plain.")] = "stripes",
+    texture: Annotated[str, typer.Option(help="Texture variant: stripes, checker, plain, or bold (3 cm dark-green stripes on white, a green checker: the pattern that carves surfaces).")] = "stripes",
     seed: Annotated[int, typer.Option(help="Random seed (motion jitter, colors).")] = 0,
     skeleton: Annotated[str, typer.Option(
         help="How the poses are written: anny (the body model), bare (its joints as a bare skeleton, no template) "
@@ -237,7 +237,7 @@ def preprocess(
               "Poses from a video": ("refine_poses", "pose_lr", "pose_prior_weight"),
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
-                         "table_adam", "table_lr_factor"),
+                         "table_adam", "table_lr_factor", "color_normal_gradient"),
               CONSOLE: ("quiet", "json_out")})
 def train(
     dataset: Annotated[Optional[Path], typer.Option(help="Dataset directory \\[default: RUN_DIR/dataset].")] = None,
@@ -284,6 +284,11 @@ def train(
         Optional[str], typer.Option(help="Adam on the hash table: sparse (entries no sample reached stay put, as tiny-cuda-nn) or dense (torch's Adam: they drift on their momentum; the ablation) \\[default: sparse].")
     ] = None,
     table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
+    color_normal_gradient: Annotated[Optional[bool], typer.Option(
+        "--color-normal-gradient/--no-color-normal-gradient",
+        help="Let the colour loss move the surface through the colour network's normal input (the paper's code); "
+             "--no-color-normal-gradient detaches it, so that bold patterns are not carved into the geometry "
+             "\\[default: the preset's: on].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -298,7 +303,7 @@ def train(
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
-        pose_prior_weight=pose_prior_weight,
+        pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_train(options, progress=progress)

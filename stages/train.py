@@ -86,6 +86,8 @@ class TrainOptions:
     refine_poses: bool | None = None
     pose_lr: float | None = None
     pose_prior_weight: float | None = None
+    #: None: the preset's (the colour loss reaches the geometry through the normal, as the paper's code).
+    color_normal_gradient: bool | None = None
 
 
 def resolve_config(options: TrainOptions) -> TrainConfig:
@@ -109,6 +111,9 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 0 <= options.body_inside_max_spill <= 1:
             raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: expected a share of views in [0, 1] (1: no check)")
         config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
+    if options.color_normal_gradient is not None:
+        color = dataclasses.replace(config.avatar.color, normal_gradient=options.color_normal_gradient)
+        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:
             raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")

@@ -277,3 +277,32 @@ def test_mlp_only_sdf_has_no_grid_and_an_exact_gradient():
     x_ad = x.clone().requires_grad_(True)
     (autograd,) = torch.autograd.grad(field(x_ad)[0].sum(), x_ad)
     assert torch.allclose(grad, autograd, atol=1e-10)
+
+
+@pytest.mark.parametrize("normal_gradient", [True, False])
+def test_a_detached_colour_normal_keeps_the_colour_loss_off_the_surface_normals(normal_gradient):
+    """With ColorFieldConfig.normal_gradient False, the colour of a point does not depend on the
+    SDF's gradient through the normal input: the colour loss cannot tilt the surface to draw a
+    stripe (issue 36). The SDF features still carry colour, as they must."""
+    import dataclasses
+
+    from igavatar.model.avatar import Avatar
+    from igavatar.training.config import preset
+
+    config = preset("tiny").avatar
+    config = dataclasses.replace(config, color=dataclasses.replace(config.color, normal_gradient=normal_gradient))
+    box = torch.tensor([[-0.5] * 3, [0.5] * 3])
+    avatar = Avatar(config, box, torch.ones(1, 4, 4, 4), box[0] - 0.2, box[1] + 0.2, pose_dim=3, init_bones=(0,))
+    seen = {}
+    real_forward = avatar.color_field.forward
+
+    def forward(feature, normal):
+        seen["normal_requires_grad"] = normal.requires_grad
+        return real_forward(feature, normal)
+
+    avatar.color_field.forward = forward
+    x = torch.rand(64, 3) - 0.5
+    out = avatar.field_at(x, torch.zeros(3))
+    assert seen["normal_requires_grad"] == normal_gradient
+    out.rgb.sum().backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in avatar.sdf_field.parameters())  # features

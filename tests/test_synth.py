@@ -235,6 +235,13 @@ def test_texture_is_periodic_in_canonical_space_and_plain_is_flat(body):
     assert np.isclose(colors, stripes.accents["print"], atol=0.02).all(axis=1).mean() > 0.1
     with pytest.raises(InputError, match="texture"):
         make_texture("polka", 0, stripes.landmarks)
+    # The bold pattern: 3 cm stripes (6 cm period), near-black green on near-white, whatever the seed.
+    for seed in (0, 1):
+        bold = make_texture("bold", seed, stripes.landmarks)
+        assert bold.stripe_period == pytest.approx(0.06)
+        z = np.linspace(0.0, 0.06, 61)
+        band = bold.albedo(np.stack([np.full_like(z, 0.15), np.full_like(z, 0.05), z], axis=1), np.full(len(z), top))
+        assert band.mean(axis=1).max() > 0.9 and band.mean(axis=1).min() < 0.25
 
 
 # ----------------------------------------------------------------------------------------------

@@ -178,7 +178,8 @@ class Avatar(nn.Module):
         """
         sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose_condition, nonrigid))
         normal = F.normalize(gradient, dim=-1, eps=1e-12)
-        rgb = self.color_field(feature, normal)
+        # A detached normal keeps the colour loss from tilting the surface (ColorFieldConfig.normal_gradient).
+        rgb = self.color_field(feature, normal if self.config.color.normal_gradient else normal.detach())
         sigma = self.density(sdf)
         if sigma_noise_std > 0:
             noise = torch.randn(sigma.shape, generator=generator, device=sigma.device, dtype=sigma.dtype)

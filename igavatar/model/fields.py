@@ -267,6 +267,11 @@ class ColorFieldConfig:
     n_hidden_layers: int = 2
     """Number of ReLU hidden layers."""
 
+    normal_gradient: bool = True
+    """Whether the colour loss reaches the geometry through the normal input (the official code).
+    False detaches the normal: a dark stripe can then no longer be explained by tilting the
+    surface (texture copied into the geometry, issue 36)."""
+
     def __post_init__(self) -> None:
         name = "ColorFieldConfig"
         _require(name, "feature_dim", self.feature_dim, self.feature_dim >= 1, "must be >= 1")

@@ -22,7 +22,7 @@ from scipy.ndimage import map_coordinates
 from igavatar.errors import BodyModelError, InputError
 from igavatar.synth.garments import COVERAGE_CHANNELS, REGION_PRIORITY, REGIONS
 
-TextureStyle = Literal["stripes", "checker", "plain"]
+TextureStyle = Literal["stripes", "checker", "plain", "bold"]
 TEXTURES: tuple[str, ...] = get_args(TextureStyle)
 
 SKIN_TONES = np.array(
@@ -193,7 +193,7 @@ class SolidTexture:
         if self.style == "plain":
             return np.zeros(x.shape[0])
         if region == "top":
-            if self.style == "stripes":
+            if self.style in ("stripes", "bold"):
                 return _smooth_square(x[:, 2] / p, duty=0.45)
             # Plaid: two stripe families (height and around the body), overlapping darker.
             horizontal = _smooth_square(x[:, 2] / c, duty=0.3)
@@ -290,6 +290,13 @@ def make_texture(style: str, seed: int, landmarks: TextureLandmarks) -> SolidTex
         "shoes": np.array([0.3, 0.3, 0.3]), "print": print_color,
     }
     letters = _render_letters(text) if style != "plain" else np.zeros((0, 0), np.float32)
+    if style == "bold":
+        # The pattern that carved the surface in issue 36: 3 cm dark-green stripes on a white shirt
+        # and a green checker on the shorts, the highest contrast a garment has.
+        colors = colors | {"top": np.array([0.95, 0.95, 0.93]), "bottom": np.array([0.92, 0.92, 0.88])}
+        accents = accents | {"top": np.array([0.08, 0.32, 0.14]), "bottom": np.array([0.1, 0.45, 0.2])}
+        return SolidTexture(style=style, colors=colors, accents=accents, stripe_period=0.06, check_size=0.04,
+                            letters=letters, text=text, landmarks=landmarks)
     return SolidTexture(
         style=style, colors=colors, accents=accents, stripe_period=0.02 + 0.005 * rng.random(),
         check_size=0.03, letters=letters, text=text, landmarks=landmarks,
