@@ -29,7 +29,6 @@ colors is written only for the worst frame (30 colored meshes would dwarf the re
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import math
 import time

@@ -343,12 +343,9 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
 
     def save_checkpoint() -> None:
         with deferred_interrupts():  # the checkpoint and its log rows are written together
-            _save_checkpoint()
-
-    def _save_checkpoint() -> None:
-        save_state(checkpoint, {"run_key": run_key, "config": json.dumps(config_json), "dataset_sha256": dataset_sha,
-                                "trainer": trainer.state_dict()})
-        log.save()
+            save_state(checkpoint, {"run_key": run_key, "config": json.dumps(config_json),
+                                    "dataset_sha256": dataset_sha, "trainer": trainer.state_dict()})
+            log.save()
 
     # The first training frame and, when there is one, the first test frame.
     test_frames = [i for i, name in enumerate(data.frame_names) if name in dataset.splits.get("test", [])]

@@ -231,11 +231,11 @@ def read_artifact(directory: Path, expected: str | None = None, *, check_hashes:
             f"igavatar {__version__} (needs {current_major}.x); re-run `{maker}`"
         )
     validate_against(kind, manifest["data"], f"{directory / MANIFEST_NAME} (data)")
-    # Artifacts written before manifests were sealed have no seal: their file hashes are still checked.
-    if check_hashes and SEAL_KEY in manifest and manifest[SEAL_KEY] != _content_sha256(manifest):
-        raise ArtifactError(f"{directory / MANIFEST_NAME}: was edited after it was written (its fields no longer match "
-                            f"its {SEAL_KEY}); re-run `{maker}`, or restore the original manifest.json")
     if check_hashes:
+        # Artifacts written before manifests were sealed have no seal: their file hashes are still checked.
+        if SEAL_KEY in manifest and manifest[SEAL_KEY] != _content_sha256(manifest):
+            raise ArtifactError(f"{directory / MANIFEST_NAME}: was edited after it was written (its fields no longer "
+                                f"match its {SEAL_KEY}); re-run `{maker}`, or restore the original manifest.json")
         for output in manifest["outputs"]:
             path = directory / output["path"]
             if not path.is_file():
