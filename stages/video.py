@@ -35,7 +35,7 @@ from igavatar.artifacts.png import write_png
 from igavatar.body.anny_body import AnnyBody, load_anny
 from igavatar.body.skeleton import forward_kinematics
 from igavatar.capture.contact_sheet import contact_sheet
-from igavatar.capture.person_landmarks import PersonTracks, person_mask, track_person
+from igavatar.capture.person_landmarks import LANDMARKS, PersonTracks, person_mask, track_person
 from igavatar.capture.video_checks import check_detections, check_in_frame, check_one_person, check_still_camera
 from igavatar.capture.video_fit import (DEFAULT_HEIGHT_M, FREE_BONES, VideoCamera, anny_body_of_height, consistent_facing,
                                         fit_anny_to_tracks, relabelled)
@@ -49,7 +49,7 @@ from stages.resources import peak_ram_bytes
 #: Fewer training frames than this cannot shape an avatar (the visual hull needs 8 views too).
 MIN_TRAIN_FRAMES = 8
 #: Bump when what the video path writes for the same clip and options changes.
-VIDEO_FIT_VERSION = 1
+VIDEO_FIT_VERSION = 2
 SHEET_FRAMES = 12
 
 
@@ -169,6 +169,13 @@ def _fit(options: VideoOptions, frames: VideoFrames, tracks: PersonTracks, progr
     return body, camera, fit_anny_to_tracks(body, tracks, camera), flips, tracks
 
 
+def _offsets_cm(offsets_m: np.ndarray) -> dict[str, list[float]]:
+    """The clip's fitted landmark offsets (rest frame: +x the body's left, +z up), by landmark name,
+    where any component reaches 1 mm."""
+    return {name: [round(100 * float(v), 1) for v in offsets_m[index]] for name, index in LANDMARKS.items()
+            if np.abs(offsets_m[index]).max() >= 1e-3}
+
+
 def _meta(options: VideoOptions, frames: VideoFrames, body: AnnyBody, camera: VideoCamera, fit, flips: np.ndarray,
           background_px: float) -> dict:
     names = frames.names
@@ -188,7 +195,8 @@ def _meta(options: VideoOptions, frames: VideoFrames, body: AnnyBody, camera: Vi
             "body": {"model": "anny", "height_m": options.height_m, "phenotype": dict(body.phenotype)},
             "fit": {"mean_residual_px": round(fit.mean_residual_px(), 3),
                     "median_residual_px": round(float(np.nanmedian(residual)), 3),
-                    "frame_residual_px": [round(float(v), 2) for v in np.nanmean(residual, axis=1)]},
+                    "frame_residual_px": [round(float(v), 2) for v in np.nanmean(residual, axis=1)],
+                    "landmark_offset_cm": _offsets_cm(fit.landmark_offsets)},
         },
     }
 

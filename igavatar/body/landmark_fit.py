@@ -13,7 +13,12 @@ What is fitted: per frame, the root's world rotation and translation and the loc
   ambiguity of a single view (does the forearm point to the camera or away?);
 - temporal smoothness of every rotation (as matrices, so a 360-degree turn has no wrap) and of
   the root's path;
-- a pose prior towards the rest pose, and hinge limits: knees bend one way only.
+- a pose prior towards the rest pose, and hinge limits: knees bend one way only;
+- per clip, one offset of each landmark from its rest point (left-right symmetric), with a prior
+  towards none: a detector's joint is not the body model's, and where it lies depends on the
+  body (a heavier body's hip landmarks sit further from its thigh bones). Without it the fit
+  tilted limbs and the pelvis in depth, where a single view cannot see it, to absorb the
+  difference: on a heavy subject its pelvis leant 12 cm back in a front view.
 The root is initialised per frame from the world landmarks' torso and the 2D hips (its depth from
 the torso's length in pixels against the skeleton's), then the root is fitted alone, then all.
 """
@@ -41,6 +46,8 @@ class BodyPoints:
         torso: landmark indices (left_shoulder, right_shoulder, left_hip, right_hip) for the root's
             initialisation.
         body_axes: (3, 3) rows: the body's left, up and forward directions in the rest pose (world).
+        mirror: (L,) int index of each landmark's left-right mirror (itself on the midline), or
+            None: the clip's landmark offsets are then fitted without symmetry.
     """
 
     joints: np.ndarray
@@ -48,6 +55,7 @@ class BodyPoints:
     limbs: np.ndarray
     torso: tuple[int, int, int, int]
     body_axes: np.ndarray
+    mirror: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,11 @@ class LandmarkTargets:
     world_xyz: np.ndarray
 
 
+#: The size of a landmark offset the prior calls typical: where a detector puts a joint differs
+#: from a body model's joint by a few centimetres, and by body shape (a heavier body's hips).
+OFFSET_SCALE_M = 0.02
+
+
 @dataclass(frozen=True)
 class LandmarkFitConfig:
     """Weights and schedule of the fit (defaults tuned on synthetic clips at 512 px)."""
@@ -75,14 +88,19 @@ class LandmarkFitConfig:
     iterations: int = 1000
     learning_rate: float = 0.01
     huber_px: float = 8.0
-    limb_weight: float = 0.5
-    smooth_weight: float = 2.0
+    # Measured on three synthetic turns (tests/benchmarks/results/video-fit-offsets.md): a weaker
+    # limb prior (0.5) and smoothness (2.0) let the fit tilt limbs in depth to absorb a few px.
+    limb_weight: float = 4.0
+    smooth_weight: float = 10.0
     translation_smooth_weight: float = 20.0
     prior_weight: float = 0.002
     hinge_weight: float = 1.0
     hinge_joints: tuple[int, ...] = ()
     """Joints that bend about their rest frame's +X only (knees): other components and negative
     bends are penalised."""
+    offset_weight: float = 0.1
+    """Weight of the prior on the clip's landmark offsets, per (offset / OFFSET_SCALE_M)^2; 0 fits
+    no offsets (each landmark stays at its rest point)."""
 
 
 @dataclass(frozen=True)
@@ -94,12 +112,15 @@ class LandmarkFit:
         root_translation: (N, 3) float64 world.
         residual_px: (N, L) reprojection error in pixels, NaN where the landmark was unused.
         posed_points: (N, L, 3) float64 fitted landmark positions in world coordinates.
+        landmark_offsets: (L, 3) float64 the clip's fitted offsets of the landmarks from their
+            rest points (rest frame, meters; zeros when none were fitted).
     """
 
     local_rotations: np.ndarray
     root_translation: np.ndarray
     residual_px: np.ndarray
     posed_points: np.ndarray
+    landmark_offsets: np.ndarray
 
     def mean_residual_px(self) -> float:
         """Mean reprojection error over every used landmark of every frame."""
@@ -160,12 +181,16 @@ def initial_root(points: BodyPoints, skeleton: Skeleton, K: np.ndarray, w2c: np.
     return rotations, translation
 
 
-def _posed_points(skeleton: Skeleton, points: BodyPoints, local: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
-    """(N, L, 3) world landmark positions of the posed skeleton (unmodelled ones at the origin)."""
+def _posed_points(skeleton: Skeleton, points: BodyPoints, local: torch.Tensor, translation: torch.Tensor,
+                  offsets: torch.Tensor | None = None) -> torch.Tensor:
+    """(N, L, 3) world landmark positions of the posed skeleton (unmodelled ones at the origin);
+    `offsets` (L, 3) move the landmarks from their rest points in the rest frame."""
     rest_joints = torch.tensor(skeleton.rest_joints, dtype=local.dtype)
     global_posed = forward_kinematics(local, rest_joints, skeleton.parents, translation)
     joints = torch.as_tensor(np.maximum(points.joints, 0))
     rest_points = torch.as_tensor(points.rest_points, dtype=local.dtype)
+    if offsets is not None:
+        rest_points = rest_points + offsets
     transform = global_posed[:, joints]  # (N, L, 4, 4)
     offset = rest_points - rest_joints[joints]
     return (transform[..., :3, :3] @ offset[..., None])[..., 0] + transform[..., :3, 3]
@@ -174,13 +199,24 @@ def _posed_points(skeleton: Skeleton, points: BodyPoints, local: torch.Tensor, t
 class _Parameters(torch.nn.Module):
     """Root rotation (as a correction to its initial matrix), translation and free joints' rotvecs."""
 
-    def __init__(self, root_init: np.ndarray, translation_init: np.ndarray, num_free: int) -> None:
+    def __init__(self, root_init: np.ndarray, translation_init: np.ndarray, num_free: int, num_points: int,
+                 mirror: np.ndarray | None) -> None:
         super().__init__()
         n_frames = root_init.shape[0]
         self.register_buffer("root_init", torch.as_tensor(root_init, dtype=torch.float64))
         self.root_delta = torch.nn.Parameter(torch.zeros(n_frames, 3, dtype=torch.float64))
         self.translation = torch.nn.Parameter(torch.as_tensor(translation_init, dtype=torch.float64).clone())
         self.free = torch.nn.Parameter(torch.zeros(n_frames, num_free, 3, dtype=torch.float64))
+        self.raw_offsets = torch.nn.Parameter(torch.zeros(num_points, 3, dtype=torch.float64))
+        self.mirror = None if mirror is None else torch.as_tensor(mirror, dtype=torch.long)
+
+    def offsets(self) -> torch.Tensor:
+        """(L, 3) the clip's landmark offsets (rest frame, meters), left-right symmetric when a
+        mirror is known (a midline landmark then keeps x = 0)."""
+        if self.mirror is None:
+            return self.raw_offsets
+        flip = torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+        return 0.5 * (self.raw_offsets + self.raw_offsets[self.mirror] * flip)
 
     def local_rotations(self, num_joints: int, free_joints: torch.Tensor) -> torch.Tensor:
         n_frames = self.free.shape[0]
@@ -231,7 +267,8 @@ def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
 def _loss(local: torch.Tensor, params: _Parameters, obs: _Observations, skeleton: Skeleton, points: BodyPoints,
           camera: tuple[torch.Tensor, torch.Tensor], config: LandmarkFitConfig, free_joints: torch.Tensor) -> torch.Tensor:
     """The fit's objective for the current parameters (a scalar)."""
-    x_world = _posed_points(skeleton, points, local, params.translation)
+    offsets = params.offsets() if config.offset_weight > 0 else None
+    x_world = _posed_points(skeleton, points, local, params.translation, offsets)
     uv, x_camera = _project(camera[0], camera[1], x_world)
     residual = (uv - obs.image_xy).norm(dim=-1)
     loss = (obs.confidence * _huber(residual, config.huber_px)).sum() / obs.confidence.sum().clamp_min(1.0)
@@ -244,6 +281,8 @@ def _loss(local: torch.Tensor, params: _Parameters, obs: _Observations, skeleton
         step = params.translation[1:] - params.translation[:-1]
         loss = loss + config.translation_smooth_weight * step.square().sum(-1).mean()
     loss = loss + config.prior_weight * params.free.square().sum(-1).mean()
+    if offsets is not None:
+        loss = loss + config.offset_weight * (offsets / OFFSET_SCALE_M).square().sum(-1).mean()
     for slot in _hinge_slots(free_joints, config.hinge_joints):
         rotvec = params.free[:, slot]
         loss = loss + config.hinge_weight * (torch.relu(-rotvec[:, 0]).square() + rotvec[:, 1:].square().sum(-1)).mean()
@@ -272,7 +311,7 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
         raise InputError(f"landmark fit: image_xy {targets.image_xy.shape} and {points.joints.shape[0]} body points "
                          f"do not match confidence {targets.confidence.shape}")
     root, translation = initial_root(points, skeleton, K, w2c, targets)
-    params = _Parameters(root, translation, len(free_joints))
+    params = _Parameters(root, translation, len(free_joints), n_landmarks, points.mirror)
     obs = _Observations.of(targets, points)
     camera = (torch.as_tensor(K, dtype=torch.float64), torch.as_tensor(w2c, dtype=torch.float64))
     free = torch.as_tensor(free_joints, dtype=torch.long)
@@ -286,9 +325,10 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
             optimizer.step()
     with torch.no_grad():
         local = params.local_rotations(skeleton.num_joints, free)
-        x_world = _posed_points(skeleton, points, local, params.translation)
+        offsets = params.offsets() if config.offset_weight > 0 else torch.zeros_like(params.raw_offsets)
+        x_world = _posed_points(skeleton, points, local, params.translation, offsets)
         uv, _ = _project(camera[0], camera[1], x_world)
         residual = (uv - obs.image_xy).norm(dim=-1).numpy()
     residual[obs.confidence.numpy() <= 0] = np.nan
-    return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy())
+    return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy(), offsets.numpy())
 

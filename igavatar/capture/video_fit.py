@@ -160,7 +160,7 @@ def anny_landmark_points(body: AnnyBody) -> BodyPoints:
     limbs = np.array([[LANDMARKS[a], LANDMARKS[b]] for a, b in _LIMBS])
     torso = (LANDMARKS["left_shoulder"], LANDMARKS["right_shoulder"], LANDMARKS["left_hip"], LANDMARKS["right_hip"])
     # Anny: the subject's left is +X, up +Z, the face looks towards -Y.
-    return BodyPoints(joints, rest_points, limbs, torso, np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]))
+    return BodyPoints(joints, rest_points, limbs, torso, np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]), MIRROR)
 
 
 def facing_yaw(world_xyz: np.ndarray) -> np.ndarray:
