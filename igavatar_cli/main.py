@@ -440,8 +440,9 @@ def animate(
 
 @app.command(name="eval")
 @user_errors
-@help_panels({INPUTS: ("model", "gt", "dataset", "out", "run_dir"),
+@help_panels({INPUTS: ("model", "gt", "dataset", "out", "run_dir", "force"),
               QUALITY: ("geometry", "images", "image_scale", "image_frames", "samples", "device"),
+              "Estimated poses": ("refine_test_poses", "refine_test_pose_steps"),
               ADVANCED: ("mesh_resolution", "surface_level", "surface_samples", "iou_points", "iou_open_meshes", "seed"),
               CONSOLE: ("quiet", "json_out")})
 def eval_(
@@ -474,8 +475,13 @@ def eval_(
     image_frames: Annotated[
         Optional[int], typer.Option(help="Render this many test frames, evenly spaced; 0 = all \\[default: all on a GPU, 10 on CPU].", min=0)
     ] = None,
+    refine_test_poses: Annotated[bool, typer.Option(
+        help="Before scoring a test image, optimise that frame's pose against it (the avatar fixed), as peers "
+             "do for estimated poses; image metrics only, recorded in the report. Geometry keeps the given poses.")] = False,
+    refine_test_pose_steps: Annotated[int, typer.Option(help="Optimisation steps per test frame with --refine-test-poses.", min=1)] = 80,
     seed: Annotated[int, typer.Option(help="Seed of the surface samples and IoU points.")] = 0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda.")] = "auto",
+    force: Annotated[bool, typer.Option(help="Redo even if the report is up to date (same model, dataset, scans and options).")] = False,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -488,7 +494,8 @@ def eval_(
         model=model or layout.model, out=out or layout.report, gt=gt, dataset=dataset, geometry=geometry,
         images=images, mesh_resolution=mesh_resolution, surface_samples=surface_samples, iou_points=iou_points,
         iou_open_meshes=iou_open_meshes, image_scale=image_scale, samples_per_ray=samples, image_frames=image_frames,
-        seed=seed, device=device, surface_level=surface_level,
+        seed=seed, device=device, surface_level=surface_level, refine_test_poses=refine_test_poses,
+        refine_test_pose_steps=refine_test_pose_steps, force=force,
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_eval(options, progress=progress)

@@ -67,7 +67,8 @@ from igavatar.metrics.report import (
 from igavatar.model.avatar import SURFACE_LEVELS
 from igavatar.model.render_avatar import render_posed_view
 from igavatar.avatar.canonical_report import canonical_section
-from stages.common import StageClock
+from stages.common import StageClock, skipped, unchanged
+from stages.eval_poses import refined_posed, refinement_notes
 from stages.kernels import build_kernels, resolve_device
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes, require_marching_memory
@@ -103,6 +104,11 @@ class EvalOptions:
     device: str = "auto"
     surface_level: str = SURFACE_LEVELS[0]
     """Where meshes are made: "silhouette" or "zero" (igavatar.model.avatar.SURFACE_LEVELS)."""
+    refine_test_poses: bool = False
+    """Refine each rendered test frame's pose against its image first (image metrics only)."""
+    refine_test_pose_steps: int = 80
+    force: bool = False
+    """Redo even if the report is up to date (same model, dataset, scans and options)."""
 
     def config(self) -> dict:
         """The options that change the numbers (recorded in the manifest)."""
@@ -112,7 +118,8 @@ class EvalOptions:
             "iou_open_meshes": self.iou_open_meshes, "image_scale": self.image_scale,
             "samples_per_ray": self.samples_per_ray, "image_frames": self.image_frames, "seed": self.seed,
             "device": self.device,
-            "test_time_pose_refinement": False,
+            "test_time_pose_refinement": self.refine_test_poses,
+            **({"test_pose_steps": self.refine_test_pose_steps} if self.refine_test_poses else {}),
             "surface_level": self.surface_level,
         }
 
@@ -176,6 +183,10 @@ def _check_options(options: EvalOptions) -> None:
         raise InputError(f"--image-scale {options.image_scale}: expected a fraction in (0, 1]")
     if options.samples_per_ray is not None and options.samples_per_ray < 1:
         raise InputError(f"--samples {options.samples_per_ray}: expected >= 1")
+    if options.refine_test_poses and not options.images:
+        raise InputError("--refine-test-poses refines poses for the image metrics; it needs --images")
+    if options.refine_test_pose_steps < 1:
+        raise InputError(f"--refine-test-pose-steps {options.refine_test_pose_steps}: expected >= 1")
     if options.image_frames is not None and options.image_frames < 0:
         raise InputError(f"--image-frames {options.image_frames}: expected >= 0 (0 = every test frame)")
     if options.surface_level not in SURFACE_LEVELS:
@@ -343,6 +354,9 @@ def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, ca
         )
     if i in plan.frames:
         tick = time.perf_counter()
+        if options.refine_test_poses:
+            posed = refined_posed(record, model, inputs.dataset, test, i, options.refine_test_pose_steps,
+                                  options.seed + i)
         size_hw = plan.size_hw
         render = render_posed_view(
             posed, model.canonical_grid,
@@ -380,6 +394,13 @@ def _write_figures(tmp: Path, document: dict, records: list[dict], names: list[s
         document["files"]["canonical mesh, front and side, beside the truth and the template"] = "geometry/canonical_views.png"
 
 
+def _input_records(inputs: _Inputs) -> list[InputRecord]:
+    """The report's inputs: the model, the dataset and the scans (their hashes say which ground
+    truth the numbers are against)."""
+    records = [InputRecord(inputs.model_dir, "model"), InputRecord(inputs.dataset.path, "dataset")]
+    return records + [InputRecord(path) for path in (inputs.matching.matched.values() if inputs.matching else ())]
+
+
 def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Evaluate a model on its dataset's test frames and write the report artifact.
 
@@ -391,6 +412,9 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     if skipped_geometry:
         progress.status(skipped_geometry)
     inputs = _read_inputs(options, progress)
+    out = Path(options.out)
+    if not options.force and unchanged(out, "report", options.config(), _input_records(inputs)):
+        return {**skipped("report", out), "table": str(out / "report.md")}
     device = resolve_device(options.device)
     build_kernels(device, progress)
     with clock("load_s"):
@@ -403,7 +427,6 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     lpips_fn, lpips_status = lpips_scorer(device) if options.images else (None, "not computed: --no-images")
     records: list[dict] = []
     worst: tuple[float, str, np.ndarray, np.ndarray] | None = None  # (CD-L1, frame, posed vertices, error mm)
-    out = Path(options.out)
     with atomic_directory(out, kind="report", inputs=[inputs.model_dir, inputs.dataset.path, inputs.gt_dir]) as tmp:
         with progress.task("evaluating test frames", total=len(names)) as advance:
             for i, name in enumerate(names):
@@ -426,10 +449,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
         validate_against("report", full, f"{out}/metrics.json")
         (tmp / "metrics.json").write_text(json.dumps(full, indent=2) + "\n")
         (tmp / "report.md").write_text(markdown_report(full))
-        # The scans are inputs too: their hashes say which ground truth these numbers are against.
-        records_in = [InputRecord(inputs.model_dir, "model"), InputRecord(inputs.dataset.path, "dataset")]
-        records_in += [InputRecord(path) for path in (inputs.matching.matched.values() if inputs.matching else ())]
-        build_manifest("report", tmp, stage="eval", config=options.config(), inputs=records_in, data=document,
+        build_manifest("report", tmp, stage="eval", config=options.config(), inputs=_input_records(inputs), data=document,
                        seed=options.seed, device=str(device), timings=clock.finish(),
                        peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()})
     summary: dict[str, Any] = {"report": str(out), "table": str(out / "report.md"), "test_frames": len(records)}
@@ -535,7 +555,7 @@ def _document(
     n_approximate = sum(s == "approximate" for s in iou_states)
     if n_approximate:
         notes = notes + [f"IoU is approximate on {n_approximate} frame(s) (see their notes)"]
-    notes = notes + [f"LPIPS {lpips_status}"]
+    notes = notes + [f"LPIPS {lpips_status}"] + refinement_notes(records)
     return {
         "inputs": {"model": str(model_dir), "dataset": str(dataset_dir), "gt": str(gt_dir) if gt_dir else None},
         "frame_names": frame_names,
@@ -546,7 +566,7 @@ def _document(
             "image_size": list(size_hw), "dataset_image_size": list(dataset_hw),
             "samples_per_ray": image_settings.samples_per_ray,
             "image_frames": sum(r["image"] is not None for r in records), "background": "white",
-            "test_time_pose_refinement": False,
+            "test_time_pose_refinement": options.refine_test_poses,
             "error_vmax_mm": ERROR_VMAX_MM, "image_error_vmax": IMAGE_ERROR_VMAX, "bbox_pad": 0, "device": device,
         },
         "prediction_mesh": prediction_mesh,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -309,3 +310,15 @@ def test_report_checks_the_canonical_shape_against_the_synthetic_truth(report):
     assert truth["chamfer_l1_mm"] > 0 and 0.0 <= truth["volumetric_iou"] <= 1.0
     picture = cv2.imread(str(report / document["files"]["canonical mesh, front and side, beside the truth and the template"]))
     assert picture.shape[0] == 3 * picture.shape[1] // 2  # three rows (prediction, truth, template) of two views
+
+
+def test_an_up_to_date_report_is_skipped_and_force_redoes_it(tiny_model, tmp_path):
+    options = EvalOptions(model=tiny_model, out=tmp_path / "report", geometry=False, image_scale=0.25, samples_per_ray=8,
+                          image_frames=1, device="cpu")
+    first = run_eval(options)
+    manifest = (tmp_path / "report" / "manifest.json").read_bytes()
+    again = run_eval(options)
+    assert "skipped" not in first and again["skipped"].startswith("inputs and options unchanged")
+    assert (tmp_path / "report" / "manifest.json").read_bytes() == manifest
+    assert "skipped" not in run_eval(dataclasses.replace(options, image_frames=2))  # other options: redone
+    assert "skipped" not in run_eval(dataclasses.replace(options, image_frames=2, force=True))

@@ -119,6 +119,15 @@ class DatasetArtifact(ManifestFacts):
     def mask_path(self, name: str) -> Path:
         return self.path / "masks" / f"{name}.png"
 
+    def image_and_mask(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Frame `name` at the dataset's size: RGB (H, W, 3) uint8 and mask (H, W) bool."""
+        image = cv2.imread(str(self.image_path(name)), cv2.IMREAD_COLOR)
+        mask = cv2.imread(str(self.mask_path(name)), cv2.IMREAD_GRAYSCALE)
+        if image is None or mask is None:
+            missing = self.image_path(name) if image is None else self.mask_path(name)
+            raise ArtifactError(f"{missing}: unreadable; re-run `igavatar preprocess`")
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB), mask > 127
+
     def image_on_white(self, name: str, size_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Frame `name` composited on white and resized: RGB (h, w, 3) float64 in [0, 1], mask (h, w) bool."""
         image_path, mask_path = self.image_path(name), self.mask_path(name)
@@ -144,13 +153,9 @@ def training_data(dataset: DatasetArtifact) -> TrainingData:
     frames = dataset.frames()
     images, masks = [], []
     for name in frames.names:
-        image = cv2.imread(str(dataset.image_path(name)), cv2.IMREAD_COLOR)
-        mask = cv2.imread(str(dataset.mask_path(name)), cv2.IMREAD_GRAYSCALE)
-        if image is None or mask is None:
-            missing = dataset.image_path(name) if image is None else dataset.mask_path(name)
-            raise ArtifactError(f"{missing}: unreadable; re-run `igavatar preprocess`")
-        images.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-        masks.append(mask > 127)
+        image, mask = dataset.image_and_mask(name)
+        images.append(image)
+        masks.append(mask)
     if not frames.train_indices:
         raise InputError(f"{dataset.path}: the dataset has no training frames (splits.train is empty)")
     return TrainingData(
