@@ -54,7 +54,12 @@ def dataset_pose_capture(humannerf: Path, video_capture: Path, out: Path) -> Non
     cameras = {"K": source.K[keep], "w2c": source.w2c[keep], "height": np.int64(source.height),
                "width": np.int64(source.width)}
     if source.dist is not None:
-        cameras["dist"] = source.dist if source.dist.ndim == 1 else source.dist[keep]
+        dist = source.dist if source.dist.ndim == 1 else source.dist[keep]
+        if dist.ndim == 2:  # a capture's cameras.npz holds one (5,) set (DATA.md): a still camera's rows agree
+            if np.abs(dist - dist[0]).max() > 1e-9:
+                raise SystemExit(f"{humannerf}: the frames' distortion coefficients differ; capture v1 holds one set")
+            dist = dist[0]
+        cameras["dist"] = dist
     np.savez(out / "cameras.npz", **cameras)
     poses = {key: (value[keep] if key in ("rotvecs", "transl") else value) for key, value in source.poses.items()}
     np.savez(out / "poses.npz", **poses)
