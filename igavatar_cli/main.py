@@ -563,5 +563,10 @@ def validate(
     )
 
 
+from igavatar_cli import batch_command  # noqa: E402  (registers `batch`, which needs the helpers above)
+
+batch_command.register(app, user_errors, err_console, _print_summary)
+
+
 if __name__ == "__main__":
     app()
