@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
 
-from igavatar.avatar.subject import SubjectArrays
 from igavatar.model.avatar import Avatar
 from igavatar.model.losses import alpha_loss, rgb_loss
 from igavatar.model.posed import PosedAvatar
@@ -38,6 +38,16 @@ from igavatar.render.volume import render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import sample_patch_pixels
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
+
+
+class SkeletonArrays(Protocol):
+    """What the refinement reads of a subject (igavatar.avatar.subject.SubjectArrays has it):
+    parents (J,), rest_joints (J, 3), canonical_rotations (J, 3, 3), init_bones (the major bones)."""
+
+    parents: np.ndarray
+    rest_joints: np.ndarray
+    canonical_rotations: np.ndarray
+    init_bones: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -143,7 +153,7 @@ def _check_loss(frame: _Frame, avatar: Avatar, grid: OccupancyGrid, refiner: Pos
         return float(frame.loss(avatar, grid, refiner, pixels, torch.Generator().manual_seed(seed), False))
 
 
-def refine_frame_pose(avatar: Avatar, canonical_grid: OccupancyGrid, subject: SubjectArrays, frame: HeldOutFrame,
+def refine_frame_pose(avatar: Avatar, canonical_grid: OccupancyGrid, subject: SkeletonArrays, frame: HeldOutFrame,
                       config: HeldOutPoseConfig, model_config: TrainConfig, seed: int = 0) -> RefinedPose:
     """Refine `frame`'s pose against its image (see the module docstring); the avatar is unchanged.
 
