@@ -134,5 +134,6 @@ def run_job(plan: JobPlan, report: Callable[[dict], None]) -> dict:
             break
     if result["status"] == "ok" and any(stage == "eval" for stage, _ in plan.commands):
         result["metrics"] = report_metrics(plan.run_dir)
-    report({"job": plan.name, "stage": "", "step": 0, "total": 0, "eta": "", "status": result["status"]})
+    last = next(reversed(result["stages"]), "")  # where a failed job stopped, the last stage of a finished one
+    report({"job": plan.name, "stage": last, "step": 0, "total": 0, "eta": "", "status": result["status"]})
     return result

@@ -100,5 +100,4 @@ def test_refinement_reduces_a_known_pose_error(small_run, tmp_path):
         trainer.train_step()
     moved_back = -float(refiner.translation[0].detach() @ sideways)
     # The correction points back along the shift and undoes a good part of it.
-    print("moved back", moved_back)
     assert moved_back > 0.02, refiner.translation[0]
