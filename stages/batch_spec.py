@@ -167,7 +167,8 @@ def read_spec(path: Path, known_options: dict[str, set[str]]) -> BatchSpec:
         _check_options("defaults", stage, spec["defaults"][stage], known_options)
     base = path.resolve().parent
     out = Path(spec["out"]) if Path(spec["out"]).is_absolute() else base / spec["out"]
-    stages = parse_stages(",".join(spec["stages"])) if spec.get("stages") else None
+    raw = spec.get("stages")
+    stages = parse_stages(raw if isinstance(raw, str) else ",".join(map(str, raw))) if raw else None
     combos = _grid(spec, known_options)
     jobs: list[BatchJob] = []
     for index, entry in enumerate(spec["jobs"]):
