@@ -95,6 +95,24 @@ def test_a_grid_expands_into_named_jobs_with_the_options_merged(tmp_path, small_
     assert spec.jobs[0].run_dir == tmp_path / "runs" / "a_seed0_regularizersmooth"
 
 
+def test_the_issues_minimal_spec_dry_runs_to_the_commands(tmp_path, small_run, cli_runner):
+    (tmp_path / "captures").mkdir()
+    for name in ("a", "b"):
+        (tmp_path / "captures" / name).symlink_to(small_run / "capture")
+    spec = _write(tmp_path / "spec.json", {"out": "runs/",
+                                           "defaults": {"preprocess": {"max_size": 64}, "train": {"preset": "tiny"}},
+                                           "jobs": [{"name": "a", "capture": "captures/a"},
+                                                    {"name": "b", "capture": "captures/b"}]})
+    result = cli_runner.invoke(app, ["batch", str(spec), "--dry-run", "--json"])
+    assert result.exit_code == 0, result.output
+    commands = json.loads(result.output)
+    run_a = tmp_path / "runs" / "a"
+    assert commands["a"] == [f"igavatar preprocess --run-dir {run_a} --capture {tmp_path / 'captures' / 'a'} --max-size 64",
+                             f"igavatar train --run-dir {run_a} --preset tiny", f"igavatar export --run-dir {run_a}",
+                             f"igavatar eval --run-dir {run_a}"]
+    assert not (tmp_path / "runs").exists()  # a dry run writes nothing
+
+
 def test_progress_lines_are_read_back():
     assert parse_progress("training: 120/800  loss 0.1  psnr 20.1  eta 1 min 05 s") == {
         "task": "training", "step": 120, "total": 800, "eta": "1 min 05 s"}
