@@ -54,7 +54,7 @@ def register(app: typer.Typer, user_errors: Callable, err_console: Console,
 
     @app.command()
     @user_errors
-    @help_panels({INPUTS: ("stages", "dry_run"), "Scheduling on Ray": ("address", "cpus_per_job", "gpus_per_job", "max_retries"),
+    @help_panels({INPUTS: ("stages", "dry_run"), "Scheduling on Ray": ("address", "cpus_per_job", "gpus_per_job", "max_retries", "local_cpus"),
                   CONSOLE: ("json_out",)})
     def batch(
         spec: Annotated[Path, typer.Argument(help="Spec file (JSON, or YAML with PyYAML): out, defaults per stage, jobs, "
@@ -71,6 +71,8 @@ def register(app: typer.Typer, user_errors: Callable, err_console: Console,
             help="GPUs per job; a fraction (0.25) packs several small jobs on one GPU; 0 runs CPU jobs.",
             min=0.0)] = 0.0,
         max_retries: Annotated[int, typer.Option(help="Times a job whose worker died is run again.", min=0)] = 2,
+        local_cpus: Annotated[Optional[int], typer.Option(
+            help="CPUs of the local Ray started without --address \\[default: all of this machine's].", min=1)] = None,
         dry_run: Annotated[bool, typer.Option(help="Check the spec and print each job's commands; run nothing.")] = False,
         json_out: JsonOut = False,
     ) -> None:
@@ -90,7 +92,7 @@ def register(app: typer.Typer, user_errors: Callable, err_console: Console,
                            for plan in plans}, json_out)
             return
         options = BatchOptions(out=parsed.out, address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job,
-                               max_retries=max_retries)
+                               max_retries=max_retries, local_cpus=local_cpus)
         names = [plan.name for plan in plans]
         if err_console.is_terminal and not json_out:
             with Live(_table({}, names), console=err_console, refresh_per_second=4) as live:

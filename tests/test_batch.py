@@ -41,7 +41,8 @@ def _write(path: Path, spec: dict) -> Path:
 
 
 def _batch(spec: Path, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "igavatar_cli.main", "batch", str(spec), "--cpus-per-job", "1", *args],
+    return subprocess.run([sys.executable, "-m", "igavatar_cli.main", "batch", str(spec), "--cpus-per-job", "1",
+                           "--local-cpus", "2", *args],
                           capture_output=True, text=True, timeout=timeout, env={**os.environ, "RAY_ADDRESS": ""})
 
 
@@ -170,7 +171,8 @@ def test_a_killed_worker_is_retried_and_the_job_succeeds(tmp_path, small_run):
     tiny = {**TINY, "train": {**TINY["train"], "steps": 400}}
     spec = _write(tmp_path / "spec.json", {"out": str(out), "defaults": tiny,
                                            "jobs": [{"name": "k", "capture": str(small_run / "capture")}]})
-    batch = subprocess.Popen([sys.executable, "-m", "igavatar_cli.main", "batch", str(spec), "--max-retries", "1"],
+    batch = subprocess.Popen([sys.executable, "-m", "igavatar_cli.main", "batch", str(spec), "--max-retries", "1",
+                              "--local-cpus", "2"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              env={**os.environ, "RAY_ADDRESS": ""})
     deadline, stage = time.time() + 300, None
