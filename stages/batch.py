@@ -97,7 +97,7 @@ def _board_class(ray):
 
 def _job_task(plan: JobPlan, board) -> dict:
     """A Ray task: run one job, reporting progress to the board (never raising for a failed job)."""
-    board.update.remote({"job": plan.name, "status": "started", "pid": os.getpid()})
+    board.update.remote({"job": plan.name, "status": "started"})
     return run_job(plan, lambda event: board.update.remote(event))
 
 

@@ -140,8 +140,9 @@ def _job(entry: Any, index: int, spec: dict, base: Path, out: Path, known: dict[
     if len(sources) != 1:
         raise InputError(f"{where} ({name}): give exactly one of capture (a capture directory) or video (a clip)")
     defaults = spec.get("defaults") or {}
-    options = {stage: {**_check_options("defaults", stage, defaults.get(stage, {}), known),
-                       **_check_options(where, stage, entry.get(stage, {}), known)} for stage in STAGES}
+    # The defaults were checked once by read_spec; a job's own options are checked here.
+    options = {stage: {**defaults.get(stage, {}), **_check_options(where, stage, entry.get(stage, {}), known)}
+               for stage in STAGES}
     source = Path(entry[sources[0]])
     return BatchJob(name, out / name, sources[0], source if source.is_absolute() else base / source, options)
 

@@ -413,7 +413,8 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
         progress.status(skipped_geometry)
     inputs = _read_inputs(options, progress)
     out = Path(options.out)
-    if not options.force and unchanged(out, "report", options.config(), _input_records(inputs)):
+    records_in = _input_records(inputs)  # hashes the model, dataset and scans: once, for the skip and the manifest
+    if not options.force and unchanged(out, "report", options.config(), records_in):
         return {**skipped("report", out), "table": str(out / "report.md")}
     device = resolve_device(options.device)
     build_kernels(device, progress)
@@ -449,7 +450,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
         validate_against("report", full, f"{out}/metrics.json")
         (tmp / "metrics.json").write_text(json.dumps(full, indent=2) + "\n")
         (tmp / "report.md").write_text(markdown_report(full))
-        build_manifest("report", tmp, stage="eval", config=options.config(), inputs=_input_records(inputs), data=document,
+        build_manifest("report", tmp, stage="eval", config=options.config(), inputs=records_in, data=document,
                        seed=options.seed, device=str(device), timings=clock.finish(),
                        peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()})
     summary: dict[str, Any] = {"report": str(out), "table": str(out / "report.md"), "test_frames": len(records)}

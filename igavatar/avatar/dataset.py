@@ -130,13 +130,8 @@ class DatasetArtifact(ManifestFacts):
 
     def image_on_white(self, name: str, size_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """Frame `name` composited on white and resized: RGB (h, w, 3) float64 in [0, 1], mask (h, w) bool."""
-        image_path, mask_path = self.image_path(name), self.mask_path(name)
-        image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
-        mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-        if image is None or mask is None:
-            raise ArtifactError(f"{image_path if image is None else mask_path}: unreadable; re-run `igavatar preprocess`")
-        inside = mask > 127
-        rgb = np.where(inside[..., None], cv2.cvtColor(image, cv2.COLOR_BGR2RGB), 255).astype(np.uint8)
+        image, inside = self.image_and_mask(name)
+        rgb = np.where(inside[..., None], image, 255).astype(np.uint8)
         # Composite first, then area-resample, so that edge pixels blend with white as a render does.
         return resize_image(rgb, size_hw).astype(np.float64) / 255.0, resize_mask(inside, size_hw)
 
