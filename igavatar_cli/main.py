@@ -231,10 +231,19 @@ def preprocess(
     _print_summary(summary, json_out)
 
 
+def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resolution: int):
+    if not view:
+        return None
+    from stages.train_view import ViewSettings
+
+    return ViewSettings(host=host, port=port, mesh_every=mesh_every, mesh_resolution=mesh_resolution)
+
+
 @app.command()
 @user_errors
 @help_panels({INPUTS: ("dataset", "out", "run_dir", "resume", "force"), QUALITY: ("preset", "steps", "rays", "samples", "seed", "device"),
               "Poses from a video": ("refine_poses", "pose_lr", "pose_prior_weight"),
+              "Watch it in a browser": ("view", "view_host", "view_port", "view_mesh_every", "view_mesh_resolution"),
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
                          "table_adam", "table_lr_factor", "color_normal_gradient"),
@@ -261,6 +270,14 @@ def train(
         help="Learning rate of the pose corrections \\[default: 0.002].")] = None,
     pose_prior_weight: Annotated[Optional[float], typer.Option(
         help="Weight that keeps the refined poses near the estimate \\[default: 0.01].")] = None,
+    view: Annotated[bool, typer.Option(
+        help="Serve a page (viser) that follows the run: loss and PSNR curves, the latest validation render and a "
+             "coarse canonical mesh; its address is printed. The model written is the same as without it.")] = False,
+    view_host: Annotated[str, typer.Option(help="--view: address to listen on (0.0.0.0 opens it to the network).")] = "127.0.0.1",
+    view_port: Annotated[int, typer.Option(help="--view: port (0: any free one); a busy port is an error.")] = 8080,
+    view_mesh_every: Annotated[int, typer.Option(
+        help="--view: steps between two canonical meshes (0: none); each costs a marching cubes.", min=0)] = 250,
+    view_mesh_resolution: Annotated[int, typer.Option(help="--view: marching-cubes resolution of that mesh.", min=16)] = 64,
     regularizer: Annotated[
         Optional[str], typer.Option(help="smooth (the paper), none, fd-eikonal, curvature, fd-eikonal+curvature or hybrid-pe \\[default: smooth].")
     ] = None,
@@ -304,6 +321,7 @@ def train(
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient,
+        view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_train(options, progress=progress)
@@ -563,9 +581,10 @@ def validate(
     )
 
 
-from igavatar_cli import batch_command  # noqa: E402  (registers `batch`, which needs the helpers above)
+from igavatar_cli import batch_command, view_command  # noqa: E402  (they need the helpers above)
 
 batch_command.register(app, user_errors, err_console, _print_summary)
+view_command.register(app, user_errors, err_console, _print_summary, DEFAULT_RUN_DIR)
 
 
 if __name__ == "__main__":

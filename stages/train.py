@@ -21,6 +21,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -42,6 +43,10 @@ from igavatar.training.config import TrainConfig, preset, with_overrides
 from igavatar.training.run_state import TrainingLog, cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
+from igavatar.viewer.server import check_port_free
+
+if TYPE_CHECKING:  # viser is imported only for --view
+    from stages.train_view import TrainingMonitor, ViewSettings
 from stages.kernels import build_kernels, resolve_device
 from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
@@ -88,6 +93,8 @@ class TrainOptions:
     pose_prior_weight: float | None = None
     #: None: the preset's (the colour loss reaches the geometry through the normal, as the paper's code).
     color_normal_gradient: bool | None = None
+    #: A browser page that follows the run (stages.train_view); None: no page.
+    view: ViewSettings | None = None
 
 
 def resolve_config(options: TrainOptions) -> TrainConfig:
@@ -225,7 +232,7 @@ def run_train(options: TrainOptions, progress: ProgressSink = NULL_PROGRESS) -> 
 
 
 def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_checkpoint, validation_frame: int,
-                work: Path, progress: ProgressSink) -> dict[str, float]:
+                work: Path, progress: ProgressSink, monitor: TrainingMonitor | None = None) -> dict[str, float]:
     """Step until the end; checkpoint, log and validate on schedule. Ctrl-C/SIGTERM checkpoint and raise."""
     last: dict[str, float] = {}
     try:
@@ -244,6 +251,10 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_ch
                 if config.validate_every and trainer.step % config.validate_every == 0 and trainer.step < trainer.total_steps:
                     panel, _ = _validation_png(trainer, validation_frame, config.validation_scale, config.validation_samples)
                     write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
+                    if monitor is not None:
+                        monitor.validation(trainer.step, panel)
+                if monitor is not None:
+                    monitor.step(trainer, last)
                 rate = trainer.step / max(trainer.seconds, 1e-9)
                 advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
     except KeyboardInterrupt as exc:
@@ -309,6 +320,8 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
                                                            [InputRecord(dataset.path, "dataset")]):
         return skipped("model", out)
     check_output_target(out, "model", [dataset.path])  # before minutes of training, not after
+    if options.view is not None:  # a busy port fails now, not after the shape initialization
+        check_port_free(options.view.host, options.view.port, "--view-port")
     device = resolve_device(options.device)
     build_kernels(device, progress)
     require_memory(config.rays_per_step * config.samples_per_ray * TRAIN_BYTES_PER_SAMPLE,
@@ -350,11 +363,21 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     # The first training frame and, when there is one, the first test frame.
     test_frames = [i for i, name in enumerate(data.frame_names) if name in dataset.splits.get("test", [])]
     validation_frames = [int(data.train_indices[0]), *test_frames[:1]]
-    last = _train_loop(trainer, config, log, save_checkpoint, validation_frames[0], work, progress)
-    clock.add("train_s", trainer.seconds)
-    with clock("validation_render_s"):
-        validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples)
-                      for i in validation_frames}
+    monitor = None
+    if options.view is not None:
+        from stages.train_view import TrainingMonitor
+
+        monitor = TrainingMonitor.open(options.view, dataset, trainer.total_steps, progress)
+    try:
+        last = _train_loop(trainer, config, log, save_checkpoint, validation_frames[0], work, progress, monitor)
+        clock.add("train_s", trainer.seconds)
+        with clock("validation_render_s"):
+            validation = {data.frame_names[i]: _validation_png(trainer, i, config.validation_scale, config.validation_samples)
+                          for i in validation_frames}
+        if monitor is not None:
+            monitor.validation(trainer.step, next(iter(validation.values()))[0])
+    finally:
+        view_cost = None if monitor is None else monitor.close(f"stopped at step {trainer.step} of {trainer.total_steps}")
     data_json = _model_data(dataset, trainer, last, validation, config)
     with atomic_directory(out, kind="model", inputs=[dataset.path]) as tmp:
         _write_model_files(tmp, dataset, trainer, shape_state, log, validation)
@@ -364,7 +387,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
             peak_memory={"ram_bytes": peak_ram_bytes(), "cuda_bytes": peak_cuda_bytes()},
         )
     shutil.rmtree(work, ignore_errors=True)
-    return _summary(out, trainer, device, data_json, validation)
+    return {**_summary(out, trainer, device, data_json, validation), **({"viewer": view_cost} if view_cost else {})}
 
 
 def _say_why_body_inside_is_off(check: dict | None, progress: ProgressSink) -> None:

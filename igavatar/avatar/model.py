@@ -11,15 +11,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from igavatar.artifacts.manifest import read_artifact
 from igavatar.avatar.facts import ManifestFacts
 from igavatar.errors import ArtifactError
 from igavatar.avatar.subject import SUBJECT_FILE, SubjectArrays
-from igavatar.body.bones import skeleton_kind
-from igavatar.body.motions import SKELETON_KINDS, body_to_world
 from igavatar.body.skeleton import Skeleton
 from igavatar.capture.posed_subject import PosedFrames, pose_frames
 from igavatar.capture.scans import existing
@@ -102,19 +99,6 @@ class ModelArtifact(ModelManifest):
     @property
     def skeleton(self) -> Skeleton:
         return self.subject.skeleton
-
-    @property
-    def axes_kind(self) -> str:
-        """The skeleton kind whose world axes the capture uses: the body model's; for a bare skeleton
-        its kind (Anny's bones come in Anny's +Z-up world); SMPL's for a skeleton of unknown kind."""
-        if self.body_model in SKELETON_KINDS:
-            return self.body_model
-        return skeleton_kind(self.skeleton) or "smpl"
-
-    @property
-    def body_axes(self) -> np.ndarray:
-        """(3, 3) columns: the body's left, up and forward directions in world (see axes_kind)."""
-        return body_to_world(self.axes_kind)
 
     @property
     def device(self) -> torch.device:
