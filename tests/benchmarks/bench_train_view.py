@@ -106,30 +106,35 @@ def main() -> None:
     parser.add_argument("--mesh-every", default="250,100")
     parser.add_argument("--browser", action="store_true")
     parser.add_argument("--out", type=Path, default=REPO / "tests/benchmarks/results")
+    parser.add_argument("--repeats", type=int, default=1, help="run the list this many times, every other time reversed")
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "bench-train-view")
     args = parser.parse_args()
     runs = [(None, False)] + [(int(n), False) for n in args.mesh_every.split(",")]
     if args.browser:
         runs.append((int(args.mesh_every.split(",")[0]), True))
     rows = []
-    for k, (mesh_every, browser) in enumerate(runs):
-        rows.append(run(args.dataset.resolve(), args.work / f"model{k}", args.steps, mesh_every, browser))
-        print(json.dumps(rows[-1]), flush=True)
-    base = rows[0]["step_ms"]
+    for repeat in range(args.repeats):
+        for k, (mesh_every, browser) in enumerate(runs if repeat % 2 == 0 else runs[::-1]):
+            rows.append({"repeat": repeat, **run(args.dataset.resolve(), args.work / f"model{k}", args.steps, mesh_every, browser)})
+            print(json.dumps(rows[-1]), flush=True)
+    plain = [r["step_ms"] for r in rows if r["mesh_every"] is None]
+    base = sum(plain) / len(plain)
     results = {"commit": commit(), "command": command(), "machine": f"{os.cpu_count()} CPU cores",
                "dataset": str(args.dataset), "runs": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "train-view.json").write_text(json.dumps(results, indent=2) + "\n")
     lines = ["# What `train --view` costs a training run", "",
              f"commit `{results['commit']}`; command `{results['command']}`; {results['machine']}; "
-             f"dataset `{args.dataset}`, cpu preset, {args.steps} steps, seed 0, one run after another", "",
-             "| run | step time | vs no page | stage time | meshes (s) | page traffic |", "|---|---|---|---|---|---|"]
+             f"dataset `{args.dataset}`, cpu preset, {args.steps} steps, seed 0, one run after another "
+             f"({args.repeats} rounds, every other one in reverse order; 'vs no page' against the mean of the no-page runs, "
+             f"{base:.1f} ms)", "",
+             "| round | run | step time | vs no page | stage time | meshes (s) | page traffic |", "|---|---|---|---|---|---|---|"]
     for row in rows:
         name = "no page" if row["mesh_every"] is None else (
             f"--view, mesh every {row['mesh_every']}" + (" + headless Chromium" if row["browser"] else " + client"))
         meshes = "-" if not row["viewer"] else f"{row['viewer']['meshes']} ({row['viewer']['mesh_seconds']} s)"
         traffic = "-" if row["mesh_every"] is None else f"{row['page_messages']} messages, {row['page_megabytes']} MB"
-        lines.append(f"| {name} | {row['step_ms']} ms | {100 * (row['step_ms'] / base - 1):+.1f} % | "
+        lines.append(f"| {row['repeat'] + 1} | {name} | {row['step_ms']} ms | {100 * (row['step_ms'] / base - 1):+.1f} % | "
                      f"{row['stage_seconds']} s | {meshes} | {traffic} |")
     (args.out / "train-view.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
