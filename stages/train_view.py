@@ -33,7 +33,7 @@ class ViewSettings:
 
     host: str = "127.0.0.1"
     port: int = 8080
-    mesh_every: int = 250
+    mesh_every: int = 100
     mesh_resolution: int = 64
 
 

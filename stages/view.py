@@ -220,7 +220,7 @@ def frame_image_reader(content: ViewContent):
             h, w = content.dataset.image_size
             scale = CAMERA_IMAGE_SIZE / max(h, w)
             rgb, _ = content.dataset.image_on_white(name, (max(1, round(h * scale)), max(1, round(w * scale))))
-            cache[index] = np.asarray(rgb, np.uint8)
+            cache[index] = (rgb * 255).round().astype(np.uint8)
         return cache[index]
 
     return image

@@ -23,7 +23,7 @@ LIBRARY_LEVELS: tuple[tuple[str, ...], ...] = (
     ("artifacts", "geometry", "kernels"),
     ("body", "render"),
     ("skinning", "mesh", "metrics", "synth"),
-    ("capture", "model"),
+    ("capture", "model", "viewer"),
     ("training",),
     ("avatar",),
 )
