@@ -227,10 +227,13 @@ class AvatarScene:
         """The client's current view as a PNG in screenshot_dir; returns its path."""
         import imageio.v3 as iio
 
-        image = client.get_render(height=size_hw[0], width=size_hw[1], transport_format="png")
+        image = np.asarray(client.get_render(height=size_hw[0], width=size_hw[1], transport_format="png"), np.float64)
+        if image.shape[-1] == 4:  # the page's background is transparent in a render: on white, as the page shows it
+            alpha = image[..., 3:] / 255.0
+            image = image[..., :3] * alpha + 255.0 * (1.0 - alpha)
         self.screenshot_dir.mkdir(parents=True, exist_ok=True)
         path = self.screenshot_dir / f"view_{self.frames.names[self.frame]}_{len(self.screenshots):03d}.png"
-        iio.imwrite(path, np.asarray(image)[..., :3])
+        iio.imwrite(path, image[..., :3].round().astype(np.uint8))
         self.screenshots.append(path)
         self.screenshot_note.content = f"saved `{path}`"
         return path
