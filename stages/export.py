@@ -89,9 +89,11 @@ from igavatar.model.posed import PosedAvatar
 from stages.common import StageClock, skipped, unchanged
 from stages.kernels import build_kernels, resolve_device
 from stages.progress import NULL_PROGRESS, ProgressSink
+from stages.texture_views import image_painter
 from stages.resources import IMAGE_BYTES_PER_PIXEL, peak_cuda_bytes, peak_ram_bytes, require_marching_memory, require_memory
 
 FORMATS = ("ply", "obj", "glb")
+TEXTURE_SOURCES = ("field", "images")
 DEFAULT_RESOLUTION = 512
 """Marching-cubes samples on the longest axis of the surface box: the paper's 512, on GPU and CPU
 alike: the narrow band makes it cheap, 20-45 s on two shared CPU cores for a `cpu`-preset network,
@@ -114,6 +116,13 @@ class ExportOptions:
     target_faces: int | None = None
     influences: int = INFLUENCES
     texture_size: int = 0
+    #: What the textured mesh's texture is made from: "field" (the color network) or "images"
+    #: (the training images fused onto the mesh, stages.texture_views).
+    texture_from: str = "field"
+    #: --texture-from images: at most this many training frames, evenly spread (0: all).
+    texture_views: int = 0
+    #: --texture-from images: the dataset whose training images are used (None: the model's own).
+    dataset: Path | None = None
     textured_faces: int = DEFAULT_TEXTURED_FACES
     #: canonical.glb's face budget (0: the full mesh).
     glb_faces: int = DEFAULT_GLB_FACES
@@ -136,7 +145,8 @@ class ExportOptions:
             "formats": list(self.formats), "resolution": self.resolution, "coarse_resolution": self.coarse_resolution,
             "min_component_ratio": self.min_component_ratio, "taubin_steps": self.taubin_steps,
             "target_faces": self.target_faces, "influences": self.influences,
-            "texture_size": self.texture_size, "textured_faces": self.textured_faces, "glb_faces": self.glb_faces, "pose": None if self.pose is None else str(self.pose),
+            "texture_size": self.texture_size, "texture_from": self.texture_from, "texture_views": self.texture_views,
+            "textured_faces": self.textured_faces, "glb_faces": self.glb_faces, "pose": None if self.pose is None else str(self.pose),
             "frame": self.frame, "all_frames": self.all_frames, "nonrigid": self.nonrigid,
             "posed_marching": self.posed_marching, "exr": self.exr, "exr_size": self.exr_size,
             "surface_level": self.surface_level,
@@ -178,6 +188,12 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError(f"--influences {options.influences}: expected 4 (web engines) or 8 (JOINTS_1/WEIGHTS_1 too)")
     if options.texture_size and not 16 <= options.texture_size <= 8192:
         raise InputError(f"--texture-size {options.texture_size}: expected 0 (no textured mesh) or 16..8192 pixels")
+    if options.texture_from not in TEXTURE_SOURCES:
+        raise InputError(f"--texture-from {options.texture_from!r}: choose one of {', '.join(TEXTURE_SOURCES)}")
+    if options.texture_from != "field" and not options.texture_size:
+        raise InputError(f"--texture-from {options.texture_from} needs --texture-size (the textured mesh it paints)")
+    if options.texture_views < 0:
+        raise InputError(f"--texture-views {options.texture_views}: expected >= 0 (0: every training frame)")
     if options.textured_faces < 4:
         raise InputError(f"--textured-faces {options.textured_faces}: expected at least 4")
     if options.glb_faces and options.glb_faces < 4:
@@ -494,6 +510,17 @@ def _summary(out: Path, device: torch.device, options: ExportOptions, canonical:
     return summary
 
 
+def _texture_dataset(options: ExportOptions, model: ModelArtifact) -> Path | None:
+    """The dataset whose training images --texture-from images fuses (None for the field)."""
+    if options.texture_from != "images":
+        return None
+    dataset = Path(options.dataset) if options.dataset is not None else model.trained_dataset()
+    if dataset is None or not (dataset / "manifest.json").is_file():
+        raise InputError(f"--texture-from images: the dataset {options.dataset or model.recorded_dataset} the model was "
+                         "trained on is not there; give it with --dataset")
+    return dataset
+
+
 def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -> dict:
     """Extract, clean, color, rig and (with --pose) pose the avatar's mesh; write the mesh artifact.
 
@@ -511,16 +538,19 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
     with clock("load_s"):
         model = load_model(model_path, device)
         poses = load_export_poses(options, model, progress) if options.pose is not None else None
-    inputs = [InputRecord(model_path, "model"), *(poses.inputs if poses else ())]
+    texture_dataset = _texture_dataset(options, model)
+    inputs = [InputRecord(model_path, "model"), *(poses.inputs if poses else ()),
+              *([InputRecord(texture_dataset, "dataset")] if texture_dataset else [])]
     if not options.force and unchanged(out, "mesh", options.config(), inputs):
         return skipped("mesh", out)
 
     canonical = _canonical(model, options, clock, progress)
-    textured = None
+    textured, fusion = None, {}
     if options.texture_size:
+        paint = None if texture_dataset is None else image_painter(model, texture_dataset, options.texture_views, progress, fusion)
         with clock("textured_s"):
             textured = textured_mesh(canonical.vertices, canonical.faces, lambda x: surface_colors(model.avatar, x),
-                                     options.textured_faces, options.texture_size)
+                                     options.textured_faces, options.texture_size, paint=paint)
     with atomic_directory(out, kind="mesh", inputs=output_inputs) as tmp:
         with clock("write_canonical_s"):
             files, glb = _write_canonical(tmp, model, canonical, poses, options)
@@ -528,6 +558,7 @@ def run_export(options: ExportOptions, progress: ProgressSink = NULL_PROGRESS) -
         if textured is not None:
             with clock("write_textured_s"):
                 textured_info = _write_textured(tmp, model, textured, options, poses)
+                textured_info["texture_from"] = {"source": options.texture_from, **fusion}
         posed = _pose_frames(tmp, model, canonical, poses, options, clock, progress)
         if glb is not None and posed.frames:
             glb["drift_mm"] = {k: max(r["glb_drift_mm"][k]["max"] for r in posed.frames) for k in ("4", "8")}

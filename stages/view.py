@@ -118,8 +118,8 @@ def _textured(model: ModelArtifact, options: ViewOptions, mesh: dict | None) -> 
     """The baked-texture mesh of the export, moved back from glTF's frame to canonical space."""
     record = None if mesh is None else mesh.get("data", {}).get("textured")
     obj = None if record is None else Path(options.mesh) / "textured" / "avatar.obj"
-    if obj is None or not obj.is_file():
-        return None, None
+    if obj is None or not obj.is_file() or not record.get("glb"):
+        return None, None  # no textured OBJ, or no record of the frame it was written in (export without glb)
     loaded = trimesh.load(obj, process=False, maintain_order=True)
     a, offset = np.asarray(record["glb"]["world_to_gltf"]), np.asarray(record["glb"]["world_to_gltf_offset"])
     loaded.vertices = (np.asarray(loaded.vertices) - offset) @ a  # x = A^T (x_gltf - offset)

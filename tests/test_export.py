@@ -408,6 +408,32 @@ def test_textured_export_bakes_the_color_field_and_rigs_the_decimated_mesh(small
     assert np.abs(np.asarray(obj.vertices).max(axis=0) - glb["vertices"].max(axis=0)).max() < 1e-4
 
 
+def test_texture_from_images_uses_the_training_frames_only(small_run, tiny_model, tmp_path):
+    out = tmp_path / "mesh"
+    run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128, textured_faces=800,
+                             texture_from="images", dataset=small_run / "dataset", device="cpu"))
+    manifest = read_artifact(out, expected="mesh")
+    fusion = manifest["data"]["textured"]["texture_from"]
+    assert fusion["source"] == "images" and fusion["views"] == 4  # the 4 training frames, not the 3 test frames
+    assert 0 < fusion["seen_fraction"] <= 1 and fusion["texels"] > 0
+    assert any(i.get("artifact") == "dataset" for i in manifest["inputs"])
+    assert manifest["config"]["texture_from"] == "images"
+    # The same export from the field is another artifact (the option is part of the config).
+    field = run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128,
+                                     textured_faces=800, device="cpu"))
+    assert "skipped" not in field
+    assert read_artifact(out, expected="mesh")["data"]["textured"]["texture_from"] == {"source": "field"}
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"texture_from": "images"}, "--texture-from images needs --texture-size"),
+    ({"texture_from": "photos", "texture_size": 64}, "--texture-from 'photos': choose one of field, images"),
+])
+def test_texture_from_bad_options_are_one_line(tiny_model, tmp_path, options, message):
+    with pytest.raises(InputError, match=message):
+        run_export(ExportOptions(model=tiny_model, out=tmp_path / "mesh", resolution=RESOLUTION, device="cpu", **options))
+
+
 def _accessor(gltf: pygltflib.GLTF2, path: Path, attribute: str) -> np.ndarray:
     """An attribute of the GLB's skinned primitive decoded with pygltflib (independent of igavatar's reader)."""
     accessor = gltf.accessors[getattr(gltf.meshes[0].primitives[0].attributes, attribute)]

@@ -74,6 +74,19 @@ def test_view_content_of_a_tiny_model(tiny_model, small_run):
     np.testing.assert_allclose(content.rig.posed_joints(content.frames.bone_transforms[5]), dataset_joints[5], atol=1e-4)
 
 
+def test_view_reads_the_exported_mesh_and_its_texture_in_canonical_space(tiny_model, small_run, tmp_path):
+    from stages.export import ExportOptions, run_export
+
+    mesh = tmp_path / "mesh"
+    run_export(ExportOptions(model=tiny_model, out=mesh, resolution=40, formats=("ply", "obj", "glb"), texture_size=128,
+                             textured_faces=800, device="cpu"))
+    content = load_view(ViewOptions(model=tiny_model, dataset=small_run / "dataset", mesh=mesh))
+    assert content.facts["mesh"] == str(mesh / "canonical.ply") and content.textured is not None
+    # The textured OBJ is written in glTF's frame; back in canonical space it covers the canonical mesh.
+    box = lambda v: np.stack([np.min(v, axis=0), np.max(v, axis=0)])  # noqa: E731
+    np.testing.assert_allclose(box(content.textured_rig.vertices), box(content.rig.vertices), atol=0.02)
+
+
 def _serve_in_thread(options: ViewOptions):
     ready, stop, box = threading.Event(), threading.Event(), {}
 

@@ -39,18 +39,28 @@ class TexturedMesh:
     decimated_vertices: int
 
 
+#: paint(atlas_vertices (V', 3), faces (F, 3), uv (V', 2), size) -> (image (S, S, 3) uint8, covered (S, S) bool):
+#: another source of the texture than the color field (igavatar.mesh.texture_fusion, the images).
+Painter = Callable[[np.ndarray, np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray]]
+
+
 def textured_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
     color_fn: Callable[[np.ndarray], np.ndarray],
     target_faces: int,
     texture_size: int,
+    paint: Painter | None = None,
 ) -> TexturedMesh:
-    """Decimate to at most `target_faces`, unwrap and bake `color_fn` ((P, 3) -> (P, 3) sRGB in [0, 1])."""
+    """Decimate to at most `target_faces`, unwrap, and bake `color_fn` ((P, 3) -> (P, 3) sRGB in
+    [0, 1]) into the atlas, or let `paint` make the texture over it."""
     decimated, decimated_faces, _ = clean_mesh(vertices, faces, keep_largest=False, target_faces=target_faces)
     atlas = unwrap(decimated, decimated_faces, texture_size)
     atlas_vertices = atlas.vertices(decimated).astype(np.float32)
-    image, covered = bake_texture(atlas_vertices, atlas.faces, atlas.uv, color_fn, texture_size)
+    if paint is None:
+        image, covered = bake_texture(atlas_vertices, atlas.faces, atlas.uv, color_fn, texture_size)
+    else:
+        image, covered = paint(atlas_vertices, atlas.faces, atlas.uv, texture_size)
     return TexturedMesh(
         vertices=atlas_vertices, faces=atlas.faces, uv=atlas.uv, image=image, coverage=float(covered.mean()),
         decimated_vertices=int(decimated.shape[0]),

@@ -69,7 +69,7 @@ def button_screenshot(chromium: str, url: str, scene, budget_ms: int) -> dict:
             return {"saved": None, "note": "no page connected"}
         time.sleep(5)  # let the page draw its first frames
         path = scene.save_screenshot(clients[0], size_hw=(400, 640))
-        return {"saved": path.name, "drawn_fraction": None}
+        return {"saved": path.name}
     except Exception as exc:  # recorded, not fatal: the two-frame check is the acceptance
         return {"saved": None, "note": f"{type(exc).__name__}: {exc}"}
     finally:
