@@ -359,9 +359,9 @@ def export(
     ] = 0,
     textured_faces: Annotated[int, typer.Option(help="Face budget of the textured mesh (quadric decimation).", min=4)] = 30_000,
     texture_from: Annotated[str, typer.Option(
-        help="What --texture-size's texture is made from: field (the color network) or images (the training images "
-             "projected onto the posed mesh and fused, weighted by angle and distance; the field fills what no "
-             "camera saw; test frames are never used).")] = "field",
+        help="What --texture-size's texture is made from: images (the training images projected onto the posed "
+             "mesh and fused, weighted by angle and distance; the color network fills what no camera saw; test "
+             "frames are never used; needs the model's dataset) or field (the color network alone).")] = "images",
     texture_views: Annotated[int, typer.Option(
         help="--texture-from images: at most this many training frames, evenly spread (0: all).", min=0)] = 0,
     dataset: Annotated[Optional[Path], typer.Option(

@@ -93,7 +93,7 @@ from stages.texture_views import image_painter
 from stages.resources import IMAGE_BYTES_PER_PIXEL, peak_cuda_bytes, peak_ram_bytes, require_marching_memory, require_memory
 
 FORMATS = ("ply", "obj", "glb")
-TEXTURE_SOURCES = ("field", "images")
+TEXTURE_SOURCES = ("images", "field")
 DEFAULT_RESOLUTION = 512
 """Marching-cubes samples on the longest axis of the surface box: the paper's 512, on GPU and CPU
 alike: the narrow band makes it cheap, 20-45 s on two shared CPU cores for a `cpu`-preset network,
@@ -116,9 +116,10 @@ class ExportOptions:
     target_faces: int | None = None
     influences: int = INFLUENCES
     texture_size: int = 0
-    #: What the textured mesh's texture is made from: "field" (the color network) or "images"
-    #: (the training images fused onto the mesh, stages.texture_views).
-    texture_from: str = "field"
+    #: What the textured mesh's texture is made from: "images" (the training images fused onto the
+    #: mesh, stages.texture_views; sharper than the field on every subject measured,
+    #: tests/benchmarks/results/texture-from-*.md) or "field" (the color network).
+    texture_from: str = "images"
     #: --texture-from images: at most this many training frames, evenly spread (0: all).
     texture_views: int = 0
     #: --texture-from images: the dataset whose training images are used (None: the model's own).
@@ -190,8 +191,9 @@ def _check_options(options: ExportOptions) -> None:
         raise InputError(f"--texture-size {options.texture_size}: expected 0 (no textured mesh) or 16..8192 pixels")
     if options.texture_from not in TEXTURE_SOURCES:
         raise InputError(f"--texture-from {options.texture_from!r}: choose one of {', '.join(TEXTURE_SOURCES)}")
-    if options.texture_from != "field" and not options.texture_size:
-        raise InputError(f"--texture-from {options.texture_from} needs --texture-size (the textured mesh it paints)")
+    if options.dataset is not None and not (options.texture_size and options.texture_from == "images"):
+        raise InputError("--dataset (the images of --texture-from images) needs --texture-size (the textured mesh they "
+                         "paint) and --texture-from images")
     if options.texture_views < 0:
         raise InputError(f"--texture-views {options.texture_views}: expected >= 0 (0: every training frame)")
     if options.textured_faces < 4:
@@ -511,13 +513,13 @@ def _summary(out: Path, device: torch.device, options: ExportOptions, canonical:
 
 
 def _texture_dataset(options: ExportOptions, model: ModelArtifact) -> Path | None:
-    """The dataset whose training images --texture-from images fuses (None for the field)."""
-    if options.texture_from != "images":
+    """The dataset whose training images --texture-from images fuses (None for the field or no texture)."""
+    if options.texture_from != "images" or not options.texture_size:
         return None
     dataset = Path(options.dataset) if options.dataset is not None else model.trained_dataset()
     if dataset is None or not (dataset / "manifest.json").is_file():
         raise InputError(f"--texture-from images: the dataset {options.dataset or model.recorded_dataset} the model was "
-                         "trained on is not there; give it with --dataset")
+                         "trained on is not there; give it with --dataset, or bake the color field with --texture-from field")
     return dataset
 
 

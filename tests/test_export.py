@@ -381,7 +381,7 @@ def test_textured_export_bakes_the_color_field_and_rigs_the_decimated_mesh(small
 
     out = tmp_path / "mesh"
     run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128, textured_faces=800,
-                             pose=small_run / "capture", frame=2, device="cpu"))
+                             texture_from="field", pose=small_run / "capture", frame=2, device="cpu"))
     data = read_artifact(out, expected="mesh")["data"]
     textured = data["textured"]
     assert set(textured["files"]) == {f"textured/avatar.{ext}" for ext in ("png", "obj", "mtl", "glb")}
@@ -420,14 +420,15 @@ def test_texture_from_images_uses_the_training_frames_only(small_run, tiny_model
     assert manifest["config"]["texture_from"] == "images"
     # The same export from the field is another artifact (the option is part of the config).
     field = run_export(ExportOptions(model=tiny_model, out=out, resolution=RESOLUTION, texture_size=128,
-                                     textured_faces=800, device="cpu"))
+                                     textured_faces=800, texture_from="field", device="cpu"))
     assert "skipped" not in field
     assert read_artifact(out, expected="mesh")["data"]["textured"]["texture_from"] == {"source": "field"}
 
 
 @pytest.mark.parametrize("options, message", [
-    ({"texture_from": "images"}, "--texture-from images needs --texture-size"),
-    ({"texture_from": "photos", "texture_size": 64}, "--texture-from 'photos': choose one of field, images"),
+    ({"dataset": Path("elsewhere")}, "--dataset .* needs --texture-size"),
+    ({"texture_from": "photos", "texture_size": 64}, "--texture-from 'photos': choose one of images, field"),
+    ({"texture_size": 64, "dataset": Path("no-such-dataset")}, "no-such-dataset the model was trained on is not there"),
 ])
 def test_texture_from_bad_options_are_one_line(tiny_model, tmp_path, options, message):
     with pytest.raises(InputError, match=message):

@@ -361,6 +361,7 @@ def main() -> None:
         summary = run_export(ExportOptions(
             model=args.model, out=out, resolution=args.resolution, pose=pose, all_frames=True, influences=influences,
             texture_size=args.texture_size, textured_faces=args.textured_faces, force=not args.reuse, device="cpu",
+            texture_from="field",  # this check measures baking fidelity against the vertex colors
             glb_faces=0,  # the full mesh, so that Blender's vertices compare with posed/*.ply in order
         ))
         data = read_artifact(out, expected="mesh")
