@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from igavatar.geometry.raycast import MeshRayCaster
-from igavatar.mesh.texture import DEFAULT_PADDING, dilate, rasterize_uv
+from igavatar.mesh.texture import DEFAULT_PADDING, dilate, rasterize_uv, sample_texture
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,19 +61,6 @@ def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     corners = vertices[faces]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-
-
-def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(P, C) float64 samples of an (H, W, C) image at pixel coordinates (centers at integers)."""
-    h, w = image.shape[:2]
-    x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
-    x0, y0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0)), np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    image = image.astype(np.float64)
-    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
-    return top * (1 - fy) + bottom * fy
 
 
 def view_samples(view: ProjectedView, faces: np.ndarray, texel_face: np.ndarray, texel_bary: np.ndarray,
@@ -112,7 +99,9 @@ def view_samples(view: ProjectedView, faces: np.ndarray, texel_face: np.ndarray,
     hits = MeshRayCaster(vertices, faces).first_hits(np.broadcast_to(center, (index.size, 3)), direction[index])
     seen = index[hits.distance >= depth_along_ray[index] - settings.occlusion_m]
     weights[seen] = cos[seen] ** settings.angle_power / depth_along_ray[seen] ** 2
-    colors[seen] = _bilinear(np.asarray(view.image), x[seen], y[seen])[:, :3] / 255.0
+    # Pixel centers at integers are texel centers at (x + 0.5) / w in texture coordinates.
+    uv = np.stack([(x[seen] + 0.5) / w, (y[seen] + 0.5) / h], axis=1)
+    colors[seen] = sample_texture(np.asarray(view.image)[..., :3], uv) / 255.0
     return colors, weights
 
 
