@@ -365,7 +365,7 @@ def export(
     texture_views: Annotated[int, typer.Option(
         help="--texture-from images: at most this many training frames, evenly spread (0: all).", min=0)] = 0,
     dataset: Annotated[Optional[Path], typer.Option(
-        help="--texture-from images: the dataset whose training images are used \[default: the model's].")] = None,
+        help="--texture-from images: the dataset whose training images are used \\[default: the model's].")] = None,
     glb_faces: Annotated[int, typer.Option(
         help="Face budget of canonical.glb, decimated for game engines and browsers (its distance to the full mesh "
              "is in the manifest); 0 keeps the full mesh. PLY/OBJ stay at full resolution.", min=0)] = 50_000,

@@ -85,6 +85,19 @@ def test_view_reads_the_exported_mesh_and_its_texture_in_canonical_space(tiny_mo
     # The textured OBJ is written in glTF's frame; back in canonical space it covers the canonical mesh.
     box = lambda v: np.stack([np.min(v, axis=0), np.max(v, axis=0)])  # noqa: E731
     np.testing.assert_allclose(box(content.textured_rig.vertices), box(content.rig.vertices), atol=0.02)
+    # On the page the texture is the first surface, and it poses with the frames.
+    from igavatar.viewer.server import open_server, stop_server
+    from stages.view import build_scene
+
+    server = open_server(port=0)
+    try:
+        scene = build_scene(server, content, None)
+        assert scene.surface.value == "texture"
+        scene.set_frame(3)
+        scene.surface.value = "colors"
+        assert scene._posed is not None and scene.frame == 3
+    finally:
+        stop_server(server)
 
 
 def _serve_in_thread(options: ViewOptions):

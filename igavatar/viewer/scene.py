@@ -6,8 +6,10 @@
 
 Every GUI element is on the server (shared by every open tab), so a page opened later shows the
 same frame. The mesh is shown two ways (the "surface" menu):
-    colors    the canonical mesh posed here with the rig's top-4 skinning, in its vertex colors
-              (or the baked texture when there is one); viser's skinned mesh takes a single color
+    texture   the export's textured mesh (`export --texture-size`), posed here the same way: the
+              default when there is one
+    colors    the canonical mesh posed here with the rig's top-4 skinning, in its vertex colors;
+              viser's skinned mesh takes a single color
     skinned   viser's skinned mesh (three.js SkinnedMesh): the browser skins it from the bone poses
 Both use the same four weights and bone poses (ViewerRig), so they coincide.
 """
@@ -112,7 +114,8 @@ class AvatarScene:
             self.fps = gui.add_number("fps", initial_value=float(self.frames.fps), min=1.0, max=120.0, step=1.0)
             self.canonical = gui.add_checkbox("canonical pose", initial_value=False)
         with gui.add_folder("Show"):
-            surfaces = [COLORS] + ([TEXTURE] if self.textured is not None else []) + [SKINNED]
+            # The export's texture (from the images by default) is the sharpest picture there is: first when present.
+            surfaces = ([TEXTURE] if self.textured is not None else []) + [COLORS, SKINNED]
             surfaces += [ERRORS] if self.scans else []
             self.surface = gui.add_dropdown("surface", tuple(surfaces), initial_value=surfaces[0])
             self.show_skeleton = gui.add_checkbox("skeleton", initial_value=True)
