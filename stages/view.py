@@ -218,7 +218,7 @@ def frame_image_reader(content: ViewContent):
             return None
         if index not in cache:
             h, w = content.dataset.image_size
-            scale = CAMERA_IMAGE_SIZE / max(h, w)
+            scale = min(1.0, CAMERA_IMAGE_SIZE / max(h, w))  # never larger than the photograph
             rgb, _ = content.dataset.image_on_white(name, (max(1, round(h * scale)), max(1, round(w * scale))))
             cache[index] = (rgb * 255).round().astype(np.uint8)
         return cache[index]

@@ -17,7 +17,7 @@ import viser
 
 from igavatar.viewer.rig import ViewerRig
 from igavatar_cli.main import app
-from stages.view import ViewOptions, load_view, serve_view
+from stages.view import ViewOptions, frame_image_reader, load_view, serve_view
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -72,6 +72,12 @@ def test_view_content_of_a_tiny_model(tiny_model, small_run):
     # The skeleton posed for a frame is the dataset's own posed joints.
     dataset_joints = content.dataset.frames().posed_joints
     np.testing.assert_allclose(content.rig.posed_joints(content.frames.bone_transforms[5]), dataset_joints[5], atol=1e-4)
+    # The image shown on a frame's camera: that frame's photograph on white, as uint8.
+    image = frame_image_reader(content)(5)
+    assert image.dtype == np.uint8 and image.shape[:2] == content.dataset.image_size
+    rgb, mask = content.dataset.image_and_mask(content.frames.names[5])
+    np.testing.assert_array_equal(image[mask], rgb[mask])
+    assert (image[~mask] == 255).all()
 
 
 def test_view_reads_the_exported_mesh_and_its_texture_in_canonical_space(tiny_model, small_run, tmp_path):
