@@ -31,6 +31,8 @@ SKINNED = "skinned"
 COLORS = "colors"
 TEXTURE = "texture"
 ERRORS = "errors"
+#: How far beside the avatar (to the body's left) the current frame's scan is shown, meters.
+SCAN_OFFSET_M = 0.9
 #: Distance to the scan shown fully red in the "errors" surface (blue at 0, OpenCV's JET map).
 ERROR_VMAX_MM = 20.0
 
@@ -84,6 +86,9 @@ class AvatarScene:
         self._posed = self._scan = None  # the scene nodes re-made per frame (None: not shown)
         self._camera_handles: list = []
         server.scene.set_up_direction(tuple(float(v) for v in up))
+        # The scan stands beside the avatar, to the body's left: overlaid, the avatar's surface (made
+        # ~3 beta outside the zero level) would hide it; the "errors" surface shows the overlap.
+        self.scan_offset = SCAN_OFFSET_M * np.cross(np.asarray(up, np.float64), np.asarray(forward, np.float64))
         self._frame_the_subject(np.asarray(up, np.float64), np.asarray(forward, np.float64))
         self._add_gui()
         bind_wxyz, bind_positions = rig.bind_poses()
@@ -204,7 +209,7 @@ class AvatarScene:
                 self._scan = None
             return
         self._scan = self.server.scene.add_mesh_simple("/scan", np.asarray(scan.vertices, np.float32), np.asarray(scan.faces),
-                                          color=(120, 160, 230), opacity=0.5, visible=visible)
+                                                       color=(150, 170, 210), position=self.scan_offset, visible=visible)
 
     def _add_cameras(self) -> None:
         for k, camera in enumerate(self.cameras):

@@ -53,6 +53,24 @@ def screenshot(chromium: str, url: str, path: Path, budget_ms: int) -> np.ndarra
     return np.asarray(iio.imread(path))[..., :3]
 
 
+def texture_and_scan(chromium: str, url: str, scene, path: Path, budget_ms: int) -> dict | None:
+    """A third look, when the run has them: the export's texture, the first scanned test frame with its
+    scan beside the avatar and the capture's camera, seen from the front and a little to the side."""
+    scanned = [i for i, name in enumerate(scene.frames.names) if name in scene.scans]
+    if scene.textured is None or not scanned:
+        return None
+    scene.surface.value = "texture"
+    scene.show_scan.value = scene.show_cameras.value = scene.show_skeleton.value = True
+    scene.set_frame(scanned[0])
+    up = np.asarray(scene.server.initial_camera.up, np.float64)
+    look_at = np.asarray(scene.server.initial_camera.look_at, np.float64) + 0.5 * scene.scan_offset
+    position = np.asarray(scene.server.initial_camera.position, np.float64)
+    scene.server.initial_camera.look_at = tuple(look_at)
+    scene.server.initial_camera.position = tuple(position + 0.8 * scene.scan_offset + 0.6 * up)
+    screenshot(chromium, url, path, budget_ms)
+    return {"frame": scene.frames.names[scanned[0]], "png": path.name}
+
+
 def button_screenshot(chromium: str, url: str, scene, budget_ms: int) -> dict:
     """What the page's 'save screenshot' button does (the client renders its view and sends it back),
     while a headless Chromium has the page open."""
@@ -85,11 +103,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "tests/benchmarks/results")
     parser.add_argument("--chromium", default=shutil.which("chromium") or "chromium")
     parser.add_argument("--cameras", action="store_true", help="show the capture's cameras too")
+    parser.add_argument("--mesh", type=Path, default=None, help="mesh artifact (default RUN/mesh)")
     parser.add_argument("--budget-ms", type=int, default=20000)
     args = parser.parse_args()
     frames = [int(f) for f in args.frames.split(",")]
     run = args.run_dir
-    options = ViewOptions(model=run / "model", mesh=run / "mesh", report=run / "report", port=0,
+    options = ViewOptions(model=run / "model", mesh=args.mesh or run / "mesh", report=run / "report", port=0,
                           screenshots=args.out)
     ready, stop, box = threading.Event(), threading.Event(), {}
 
@@ -128,6 +147,8 @@ def main() -> None:
                                         "drawn_fraction": round(float(drawn.mean()), 4),
                                         "seconds": round(time.perf_counter() - started, 1)}
         results["screenshot_button"] = button_screenshot(args.chromium, url, scene, args.budget_ms)
+        results["texture_and_scan"] = texture_and_scan(args.chromium, url, scene, args.out / "view-texture-scan.png",
+                                                       args.budget_ms)
         a, b = (shots[f].astype(int) for f in frames)
         changed = np.abs(a - b).max(-1) > PIXEL_THRESHOLD
         results["frames_differ_fraction"] = round(float(changed.mean()), 4)
@@ -146,6 +167,8 @@ def main() -> None:
     lines += ["", f"Pixels that differ between the two frames: {100 * results['frames_differ_fraction']:.1f} %.",
               f"The page's 'save screenshot' button (the browser renders its view and sends it back): "
               f"{results['screenshot_button']}.",
+              f"The export's texture with the frame's scan beside the avatar and the capture's camera: "
+              f"{results['texture_and_scan']}.",
               f"Result: {'pass' if ok else 'FAIL'} (each frame > 1 % drawn, the two differ on > 0.2 %)."]
     (args.out / "view-browser.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
