@@ -175,8 +175,22 @@ def _scans(options: ViewOptions, names: list[str]) -> dict[str, trimesh.Trimesh]
         paths = {p.stem: p for p in sorted(Path(options.gt).glob("*.ply"))}
     elif options.report is not None and (Path(options.report) / MANIFEST_NAME).is_file():
         inputs = json.loads((Path(options.report) / MANIFEST_NAME).read_text()).get("inputs", [])
-        paths = {Path(i["path"]).stem: Path(i["path"]) for i in inputs if str(i.get("path", "")).endswith(".ply")}
-    return {name: trimesh.load(paths[name], process=False) for name in names if name in paths and paths[name].is_file()}
+        run = Path(options.report).resolve().parent
+        paths = {Path(i["path"]).stem: _recorded(Path(i["path"]), run) for i in inputs if str(i.get("path", "")).endswith(".ply")}
+    return {name: trimesh.load(paths[name], process=False) for name in names if paths.get(name) is not None}
+
+
+def _recorded(path: Path, run: Path) -> Path | None:
+    """A path an eval recorded (relative to where it ran), found from here: as it is, else its tail
+    under the run directory (igavatar-run/capture/scans/x.ply -> RUN/capture/scans/x.ply)."""
+    if path.is_file():
+        return path
+    parts = path.parts
+    for k in range(len(parts)):
+        candidate = run.joinpath(*parts[k:])
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def load_view(options: ViewOptions, progress: ProgressSink = NULL_PROGRESS) -> ViewContent:

@@ -198,3 +198,14 @@ def test_ctrl_c_stops_the_server_cleanly(tiny_model, small_run, tmp_path):
     assert '"frames": 7' in out and "Traceback" not in err
     with pytest.raises(OSError):
         urllib.request.urlopen(url, timeout=5)
+
+
+def test_scans_recorded_elsewhere_are_found_under_the_run(tmp_path):
+    from stages.view import _recorded
+
+    scan = tmp_path / "run" / "capture" / "scans" / "test_0000.ply"
+    scan.parent.mkdir(parents=True)
+    scan.write_text("ply")
+    # eval ran from another folder: it recorded the path as given there
+    assert _recorded(Path("somewhere/igavatar-run/capture/scans/test_0000.ply"), tmp_path / "run") == scan
+    assert _recorded(Path("igavatar-run/capture/scans/missing.ply"), tmp_path / "run") is None
