@@ -209,3 +209,10 @@ def test_scans_recorded_elsewhere_are_found_under_the_run(tmp_path):
     # eval ran from another folder: it recorded the path as given there
     assert _recorded(Path("somewhere/igavatar-run/capture/scans/test_0000.ply"), tmp_path / "run") == scan
     assert _recorded(Path("igavatar-run/capture/scans/missing.ply"), tmp_path / "run") is None
+
+
+def test_unknown_motion_is_one_line(cli_runner, tiny_model, small_run):
+    result = cli_runner.invoke(app, ["view", "--model", str(tiny_model), "--dataset", str(small_run / "dataset"),
+                                     "--mesh-resolution", "32", "--motion", "moonwalk", "--port", "0"])
+    assert result.exit_code == 2
+    assert "--motion 'moonwalk': neither a procedural motion" in result.output and "Traceback" not in result.output
