@@ -27,7 +27,7 @@ from igavatar.mesh.textured_mesh import Painter
 from stages.progress import ProgressSink
 
 
-def _training_indices(n_frames: int, is_train: np.ndarray, max_views: int) -> list[int]:
+def _training_indices(is_train: np.ndarray, max_views: int) -> list[int]:
     train = np.flatnonzero(is_train)
     if max_views and train.size > max_views:
         train = train[np.round(np.linspace(0, train.size - 1, max_views)).astype(np.int64)]
@@ -39,7 +39,7 @@ def training_views(model: ModelArtifact, dataset_path: Path, atlas_vertices: np.
     """The training frames as views, lazily: a frame is posed and its image read when its turn comes."""
     dataset = read_dataset(dataset_path)
     frames = dataset.frames()
-    indices = _training_indices(frames.n_frames, frames.is_train, max_views)
+    indices = _training_indices(frames.is_train, max_views)
     if not indices:
         raise InputError(f"--texture-from images: the dataset {dataset_path} has no training frames")
     poses = read_poses(model, dataset_path, lambda n, where: indices, option="--dataset")

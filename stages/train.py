@@ -44,13 +44,13 @@ from igavatar.training.run_state import TrainingLog, cached_shape_init, checkpoi
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
 from igavatar.viewer.server import check_port_free
-
-if TYPE_CHECKING:  # viser is imported only for --view
-    from stages.train_view import TrainingMonitor, ViewSettings
 from stages.kernels import build_kernels, resolve_device
 from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
+
+if TYPE_CHECKING:  # viser is imported only for --view
+    from stages.train_view import TrainingMonitor, ViewSettings
 
 
 class TrainingInterrupted(IgavatarError):
@@ -253,9 +253,9 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_ch
                     write_png(work / "validation" / f"step_{trainer.step:06d}.png", panel)
                     if monitor is not None:
                         monitor.validation(trainer.step, panel)
-                if monitor is not None:
-                    monitor.step(trainer, last)
                 rate = trainer.step / max(trainer.seconds, 1e-9)
+                if monitor is not None:
+                    monitor.step(trainer, last, rate)
                 advance(1, loss=f"{last['loss']:.4f}", psnr=f"{last['psnr']:.2f}", it_s=f"{rate:.2f}")
     except KeyboardInterrupt as exc:
         save_checkpoint()

@@ -1,7 +1,7 @@
 """`train --view`: a viser page that follows a training run (igavatar.viewer.training).
 
     monitor = TrainingMonitor.open(options, dataset, total_steps, progress)   # before shape init
-    monitor.step(trainer, last)            # after every step: curves, and the mesh every N steps
+    monitor.step(trainer, last, it_s)      # after every step: curves, and the mesh every N steps
     monitor.validation(step, panel)        # when training writes a validation panel
     monitor.close("done")
 
@@ -55,9 +55,8 @@ class TrainingMonitor:
         return cls(server, panel, settings)
 
     @torch.no_grad()
-    def step(self, trainer, last: dict[str, float]) -> None:
-        rate = trainer.step / max(trainer.seconds, 1e-9)
-        self.panel.on_step(trainer.step, last, rate)
+    def step(self, trainer, last: dict[str, float], it_s: float) -> None:
+        self.panel.on_step(trainer.step, last, it_s)
         if self.panel.wants_mesh(trainer.step):
             started = time.perf_counter()
             vertices, faces = canonical_surface(trainer.avatar, resolution=self.settings.mesh_resolution,

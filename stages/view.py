@@ -20,7 +20,6 @@ Nothing is written except the screenshots the page's button saves (--screenshots
 
 from __future__ import annotations
 
-import json
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +29,7 @@ import torch
 import trimesh
 
 from igavatar.artifacts.manifest import MANIFEST_NAME, read_manifest
-from igavatar.avatar.dataset import DatasetArtifact, read_dataset
+from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
 from igavatar.avatar.model import ModelArtifact, load_model
 from igavatar.avatar.poses import DEFAULT_FPS, PoseSequence, procedural_poses, read_poses
 from igavatar.avatar.surfaces import canonical_surface, vertex_colors, vertex_skin_weights
@@ -40,7 +39,7 @@ from igavatar.mesh.cleanup import clean_mesh
 from igavatar.mesh.engine_mesh import engine_mesh
 from igavatar.viewer.rig import ViewerRig
 from igavatar.viewer.scene import AvatarScene, CameraView, ViewerFrames
-from igavatar.viewer.server import DEFAULT_HOST, DEFAULT_PORT, open_server, server_url, stop_server
+from igavatar.viewer.server import DEFAULT_HOST, DEFAULT_PORT, check_port_free, open_server, server_url, stop_server
 from stages.progress import NULL_PROGRESS, ProgressSink
 
 #: At most this many camera frustums (a moving camera has one per frame).
@@ -153,9 +152,8 @@ def _poses(model: ModelArtifact, options: ViewOptions, dataset_path: Path | None
     return read_poses(model, Path(motion), lambda n, where: list(range(n)), on_status=progress.status, option="--motion")
 
 
-def _cameras(dataset: DatasetArtifact) -> list[CameraView]:
+def _cameras(dataset: DatasetArtifact, frames: DatasetFrames) -> list[CameraView]:
     """The dataset's distinct cameras (a still camera is one), at most MAX_CAMERAS evenly spread."""
-    frames = dataset.frames()
     groups: dict[bytes, list[int]] = {}
     for i in range(frames.n_frames):
         key = np.round(np.concatenate([frames.w2c[i].ravel(), frames.K[i].ravel()]), 4).tobytes()
@@ -174,7 +172,7 @@ def _scans(options: ViewOptions, names: list[str]) -> dict[str, trimesh.Trimesh]
             raise InputError(f"--gt {options.gt}: no such directory")
         paths = {p.stem: p for p in sorted(Path(options.gt).glob("*.ply"))}
     elif options.report is not None and (Path(options.report) / MANIFEST_NAME).is_file():
-        inputs = json.loads((Path(options.report) / MANIFEST_NAME).read_text()).get("inputs", [])
+        inputs = read_manifest(Path(options.report)).get("inputs", [])
         run = Path(options.report).resolve().parent
         paths = {Path(i["path"]).stem: _recorded(Path(i["path"]), run) for i in inputs if str(i.get("path", "")).endswith(".ply")}
     return {name: trimesh.load(paths[name], process=False) for name in names if paths.get(name) is not None}
@@ -210,14 +208,15 @@ def load_view(options: ViewOptions, progress: ProgressSink = NULL_PROGRESS) -> V
     names = list(poses.frame_names)
     frames = ViewerFrames(names, poses.bone_transforms.double().cpu().numpy(), float(poses.fps),
                           [split_of.get(n, "") for n in names])
-    dataset_names = set(dataset.frames().names) if dataset is not None else set()
+    dataset_frames = dataset.frames() if dataset is not None else None
+    dataset_names = set(dataset_frames.names) if dataset_frames is not None else set()
     frame_of_dataset = {i: n for i, n in enumerate(names) if n in dataset_names}
     scans = _scans(options, names)
     facts = {"model": str(model.path), "mesh": mesh_source, "textured": textured is not None,
              "vertices": int(vertices.shape[0]), "faces": int(faces.shape[0]), "frames": frames.n_frames,
              "poses": poses.source, "scans": len(scans)}
     axes = np.asarray(model.body_axes)  # columns: left, up, forward
-    return ViewContent(rig, frames, axes[:, 1], axes[:, 2], _cameras(dataset) if dataset else [],
+    return ViewContent(rig, frames, axes[:, 1], axes[:, 2], _cameras(dataset, dataset_frames) if dataset else [],
                        dataset, frame_of_dataset, scans, textured, textured_rig, facts)
 
 
@@ -252,6 +251,7 @@ def serve_view(options: ViewOptions, progress: ProgressSink = NULL_PROGRESS,
 
     on_ready(server, scene), when given, is called once the page is up (tests, the browser check).
     """
+    check_port_free(options.host, options.port)  # a busy port fails now, not after the mesh is loaded
     content = load_view(options, progress)
     server = open_server(options.host, options.port)
     url = server_url(server)

@@ -176,7 +176,6 @@ def test_missing_model_is_one_line(cli_runner, tmp_path):
     assert "error:" in result.output and "no-run" in result.output and "Traceback" not in result.output
 
 
-@pytest.mark.skipif(sys.platform == "win32", reason="SIGINT to a child process is POSIX")
 def test_ctrl_c_stops_the_server_cleanly(tiny_model, small_run, tmp_path):
     command = [sys.executable, "-m", "igavatar_cli.main", "view", "--model", str(tiny_model),
                "--dataset", str(small_run / "dataset"), "--mesh-resolution", "32", "--port", "0", "--json"]

@@ -5,13 +5,13 @@
     scene.step_playback()               # called by the serving loop: one frame on while "play" is on
 
 Every GUI element is on the server (shared by every open tab), so a page opened later shows the
-same frame. The mesh is shown two ways (the "surface" menu):
+same frame. The "surface" menu shows the mesh:
     texture   the export's textured mesh (`export --texture-size`), posed here the same way: the
               default when there is one
     colors    the canonical mesh posed here with the rig's top-4 skinning, in its vertex colors;
               viser's skinned mesh takes a single color
     skinned   viser's skinned mesh (three.js SkinnedMesh): the browser skins it from the bone poses
-Both use the same four weights and bone poses (ViewerRig), so they coincide.
+All use the same four weights and bone poses (ViewerRig), so they coincide.
 """
 
 from __future__ import annotations
@@ -85,6 +85,7 @@ class AvatarScene:
         self.screenshots: list[Path] = []
         self._posed = self._scan = None  # the scene nodes re-made per frame (None: not shown)
         self._camera_handles: list = []
+        self._camera_images: list[int | None] = []  # the frame whose image each camera shows (None: none)
         server.scene.set_up_direction(tuple(float(v) for v in up))
         # The scan stands beside the avatar, to the body's left: overlaid, the avatar's surface (made
         # ~3 beta outside the zero level) would hide it; the "errors" surface shows the overlap.
@@ -202,14 +203,13 @@ class AvatarScene:
 
     def _show_scan(self, name: str) -> None:
         scan = self.scans.get(name)
-        visible = bool(self.show_scan.value) and scan is not None and not self.canonical.value
-        if scan is None:
-            if self._scan is not None:
-                self._scan.remove()
-                self._scan = None
+        if self._scan is not None:
+            self._scan.remove()
+            self._scan = None
+        if scan is None or not self.show_scan.value or self.canonical.value:
             return
         self._scan = self.server.scene.add_mesh_simple("/scan", np.asarray(scan.vertices, np.float32), np.asarray(scan.faces),
-                                                       color=(150, 170, 210), position=self.scan_offset, visible=visible)
+                                                       color=(150, 170, 210), position=self.scan_offset)
 
     def _add_cameras(self) -> None:
         for k, camera in enumerate(self.cameras):
@@ -220,15 +220,18 @@ class AvatarScene:
                 f"/cameras/{k}", fov=float(fov), aspect=w / h, scale=0.15, color=(40, 40, 40),
                 wxyz=_wxyz_of(c2w[:3, :3]), position=c2w[:3, 3], visible=bool(self.show_cameras.value),
             ))
+            self._camera_images.append(None)
 
     def _show_cameras(self) -> None:
-        """Every camera (toggle); the current frame's image on the camera that took it."""
+        """Every camera (toggle); the current frame's image on the camera that took it (an image is
+        sent only when a camera's changes)."""
         visible = bool(self.show_cameras.value)
-        for camera, handle in zip(self.cameras, self._camera_handles):
+        for k, (camera, handle) in enumerate(zip(self.cameras, self._camera_handles)):
             handle.visible = visible
-            image = (self.frame_image(self.frame) if visible and self.frame_image is not None
-                     and self.frame in camera.frames else None)
-            handle.image = image
+            shown = self.frame if visible and self.frame_image is not None and self.frame in camera.frames else None
+            if shown != self._camera_images[k]:
+                handle.image = None if shown is None else self.frame_image(shown)
+                self._camera_images[k] = shown
 
     # ------------------------------------------------------------------------------------ screenshot
     def save_screenshot(self, client: viser.ClientHandle, size_hw: tuple[int, int] = (720, 960)) -> Path:
