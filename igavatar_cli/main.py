@@ -20,7 +20,7 @@ from rich.console import Console
 
 from igavatar import __version__
 from igavatar.artifacts.storage import storage_message
-from igavatar.errors import IgavatarError, ResourceLimitError, StorageError, Terminated
+from igavatar.errors import IgavatarError, InputError, ResourceLimitError, StorageError, Terminated
 from igavatar.interrupts import signals_as_interrupts
 from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
@@ -148,7 +148,7 @@ def synth(
 @app.command()
 @user_errors
 @help_panels({INPUTS: ("capture", "out", "run_dir", "input_format", "smpl_model", "force"),
-              "Video": ("video", "every", "max_frames", "test_every", "height", "focal", "fov"),
+              "Video": ("video", "every", "max_frames", "test_every", "height", "focal", "fov", "poses_from"),
               QUALITY: ("max_size",),
               ADVANCED: ("shape_prior", "body_fit", "grid_resolution", "weight_smoothing", "weight_spread", "anny_cache"),
               CONSOLE: ("quiet", "json_out")})
@@ -207,6 +207,11 @@ def preprocess(
     fov: Annotated[Optional[float], typer.Option(
         help="Video: field of view in degrees across the longer side \\[default: 50]; a phone's main camera films "
              "about 65-70, zoomed in less.", rich_help_panel="Video")] = None,
+    poses_from: Annotated[Optional[Path], typer.Option(
+        help="Video: SMPL poses a GPU estimator made for this clip, in place of igavatar's own fit: WHAM's "
+             "wham_output.pkl or TRAM's hps/hps_track_K.npy (their camera-frame estimate; needs --smpl-model). "
+             "GVHMR's SMPL-X output is not supported \\[default: none: igavatar fits Anny].",
+        rich_help_panel="Video")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -216,6 +221,8 @@ def preprocess(
     from stages.preprocess import PreprocessOptions, parse_grid_resolution, run_preprocess
     from stages.video import VideoOptions
 
+    if poses_from is not None and video is None:
+        raise InputError(f"--poses-from {poses_from}: needs --video, the clip the poses were estimated on")
     layout = RunLayout(run_dir)
     options = PreprocessOptions(
         capture=capture or layout.capture, out=out or layout.dataset, input_format=input_format,
@@ -224,7 +231,8 @@ def preprocess(
         smpl_model=smpl_model, shape_prior=shape_prior, body_fit=body_fit, force=force,
         video=None if video is None else VideoOptions(
             video=video, out=capture or layout.capture, every=every, max_frames=max_frames, test_every=test_every,
-            height_m=height, focal_px=focal, fov_deg=fov, anny_cache=anny_cache, force=force),
+            height_m=height, focal_px=focal, fov_deg=fov, anny_cache=anny_cache, poses_from=poses_from,
+            smpl_model=smpl_model, force=force),
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:
         summary = run_preprocess(options, progress=progress)
@@ -447,7 +455,6 @@ def animate(
     json_out: JsonOut = False,
 ) -> None:
     """Render the avatar driven by a motion: PNG frames, an mp4, optionally posed meshes per frame and an animated GLB."""
-    from igavatar.errors import InputError
     from igavatar_cli.progress import progress_sink
     from stages.animate import AnimateOptions, run_animate
 

@@ -24,7 +24,6 @@ import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -41,8 +40,9 @@ from igavatar.capture.video_fit import (DEFAULT_HEIGHT_M, FREE_BONES, VideoCamer
                                         fit_anny_to_tracks, relabelled)
 from igavatar.capture.video_frames import IMAGE_SUFFIXES, FrameSelection, VideoFrames, read_video_frames
 from igavatar.errors import InputError
-from igavatar.geometry.projection import project_points
+from igavatar.geometry.projection import filled_silhouette, project_points
 from stages.common import StageClock, unchanged
+from stages.video_estimate import Estimate, estimate_meta, keep_estimated, place_estimate, read_estimate, write_estimate_capture
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
 
@@ -67,13 +67,19 @@ class VideoOptions:
     fov_deg: float | None = None
     max_side: int = 1024
     anny_cache: Path | None = None
+    poses_from: Path | None = None
+    """A GPU estimator's SMPL poses for the clip (WHAM, TRAM: stages.video_estimate), or None: igavatar's fit."""
+    smpl_model: Path | None = None
     force: bool = False
 
     def config(self) -> dict:
-        """What changes the capture (recorded in its manifest, compared to skip)."""
+        """What changes the capture (recorded in its manifest, compared to skip); the files are inputs."""
         config = asdict(self)
-        for key in ("video", "out", "anny_cache", "force"):
+        for key in ("video", "out", "anny_cache", "force", "poses_from", "smpl_model"):
             config.pop(key)
+        if self.poses_from is not None:
+            config.pop("height_m")
+            config["poses_from"] = "estimator"
         return {**config, "video_fit_version": VIDEO_FIT_VERSION}
 
 
@@ -86,12 +92,16 @@ def _check_options(options: VideoOptions) -> None:
         raise InputError(f"--test-every {options.test_every}: 0 (no held-out frames) or >= 2")
 
 
-def _input_records(video: Path) -> list[InputRecord]:
+def _input_records(video: Path, estimate: Estimate | None) -> list[InputRecord]:
     if video.is_dir():
-        return [InputRecord(p) for p in sorted(video.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES]
-    if not video.is_file():
+        records = [InputRecord(p) for p in sorted(video.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES]
+    elif not video.is_file():
         raise InputError(f"{video}: no such video file or folder of frames")
-    return [InputRecord(video)]
+    else:
+        records = [InputRecord(video)]
+    if estimate is not None:
+        records += [InputRecord(estimate.poses.path), InputRecord(estimate.model.path)]
+    return records
 
 
 def _splits(names: list[str], test_every: int) -> dict[str, list[str]]:
@@ -111,18 +121,6 @@ def _keep_detected(frames: VideoFrames, tracks: PersonTracks) -> tuple[VideoFram
     tracks = PersonTracks(tracks.detected[keep], tracks.masks[keep], tracks.people[keep], tracks.image_xy[keep],
                           tracks.visibility[keep], tracks.world_xyz[keep])
     return frames, tracks
-
-
-def _body_silhouette(vertices_world: np.ndarray, faces: np.ndarray, camera: VideoCamera) -> np.ndarray:
-    """(H, W) bool: the posed body's projected triangles, filled."""
-    uv, z = project_points(camera.K, camera.w2c, vertices_world)
-    silhouette = np.zeros((camera.height, camera.width), np.uint8)
-    visible = np.isfinite(uv).all(axis=1) & (z > 0)
-    # One call per triangle: fillPoly's even-odd rule would cancel overlapping triangles.
-    for triangle in np.round(uv[faces[visible[faces].all(axis=1)]] * 4).astype(np.int32):
-        cv2.fillConvexPoly(silhouette, triangle, 1, lineType=cv2.LINE_8, shift=2)
-    # Rounding leaves one-pixel cracks between neighbouring triangles; close them.
-    return cv2.morphologyEx(silhouette, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
 
 
 def _main_skeleton(body: AnnyBody) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +151,7 @@ def _fitted_sheet(frames: VideoFrames, body: AnnyBody, fit, camera: VideoCamera)
     items = []
     for slot, index in enumerate(picks):
         joints_uv, _ = project_points(camera.K, camera.w2c, joints[slot][shown])
-        items.append((frames.images[index], _body_silhouette(vertices[slot], faces, camera), joints_uv,
+        items.append((frames.images[index], filled_silhouette(camera.K, camera.w2c, vertices[slot], faces, camera.height, camera.width), joints_uv,
                       f"{frames.names[index]} fitted"))
     return contact_sheet(items, parents)
 
@@ -176,29 +174,37 @@ def _offsets_cm(offsets_m: np.ndarray) -> dict[str, list[float]]:
             if np.abs(offsets_m[index]).max() >= 1e-3}
 
 
-def _meta(options: VideoOptions, frames: VideoFrames, body: AnnyBody, camera: VideoCamera, fit, flips: np.ndarray,
-          background_px: float) -> dict:
+def _meta_common(options: VideoOptions, frames: VideoFrames, background_px: float, body_model: str) -> dict:
+    """capture.json's fields of any video capture: frames, splits, fps and what was kept and dropped."""
     names = frames.names
-    residual = fit.residual_px
     return {
-        "format": "igavatar-capture", "version": 1, "body_model": "anny", "frames": names,
+        "format": "igavatar-capture", "version": 1, "body_model": body_model, "frames": names,
         "splits": _splits(names, options.test_every), **({"fps": frames.fps} if frames.fps else {}),
         "image_ext": ".png", "source_format": "video",
         "video": {
             "source": str(options.video), "source_frames": frames.source_count,
             "source_size": list(frames.source_size), "kept_frames": len(names),
             "dropped": {reason: indices for reason, indices in frames.dropped.items()},
-            "relabelled_back_views": [names[i] for i in np.flatnonzero(flips)],
             "background_motion_px": round(background_px, 3),
-            "camera": {"focal_px": float(camera.K[0, 0]), "focal_from": camera.focal_source,
-                       "level": True, "image_size": [camera.height, camera.width]},
-            "body": {"model": "anny", "height_m": options.height_m, "phenotype": dict(body.phenotype)},
-            "fit": {"mean_residual_px": round(fit.mean_residual_px(), 3),
-                    "median_residual_px": round(float(np.nanmedian(residual)), 3),
-                    "frame_residual_px": [round(float(v), 2) for v in np.nanmean(residual, axis=1)],
-                    "landmark_offset_cm": _offsets_cm(fit.landmark_offsets)},
         },
     }
+
+
+def _meta(options: VideoOptions, frames: VideoFrames, body: AnnyBody, camera: VideoCamera, fit, flips: np.ndarray,
+          background_px: float) -> dict:
+    meta = _meta_common(options, frames, background_px, "anny")
+    residual = fit.residual_px
+    meta["video"].update({
+        "relabelled_back_views": [frames.names[i] for i in np.flatnonzero(flips)],
+        "camera": {"focal_px": float(camera.K[0, 0]), "focal_from": camera.focal_source,
+                   "level": True, "image_size": [camera.height, camera.width]},
+        "body": {"model": "anny", "height_m": options.height_m, "phenotype": dict(body.phenotype)},
+        "fit": {"mean_residual_px": round(fit.mean_residual_px(), 3),
+                "median_residual_px": round(float(np.nanmedian(residual)), 3),
+                "frame_residual_px": [round(float(v), 2) for v in np.nanmean(residual, axis=1)],
+                "landmark_offset_cm": _offsets_cm(fit.landmark_offsets)},
+    })
+    return meta
 
 
 def _write_capture(tmp: Path, frames: VideoFrames, tracks: PersonTracks, body: AnnyBody, camera: VideoCamera, fit,
@@ -228,9 +234,9 @@ def run_video_capture(options: VideoOptions, progress: ProgressSink = NULL_PROGR
     """
     _check_options(options)
     video, out = Path(options.video), Path(options.out)
-    inputs = _input_records(video)
-    config = options.config()
-    if not options.force and unchanged(out, "capture", config, inputs):
+    estimate = None if options.poses_from is None else read_estimate(options.poses_from, options.smpl_model)
+    inputs = _input_records(video, estimate)
+    if not options.force and unchanged(out, "capture", options.config(), inputs):
         return {"capture": str(out), "skipped": "video, options unchanged (use --force to redo)"}
     check_output_target(out, "capture", [video])
     clock = StageClock()
@@ -240,22 +246,48 @@ def run_video_capture(options: VideoOptions, progress: ProgressSink = NULL_PROGR
         tracks = track_person(frames.images, on_frame=lambda _: advance(1))
     check_detections(video, tracks, MIN_TRAIN_FRAMES + (1 if options.test_every else 0))
     frames, tracks = _keep_detected(frames, tracks)
+    if estimate is not None:
+        frames, tracks = keep_estimated(frames, tracks, estimate.poses)
     if len(_splits(frames.names, options.test_every)["train"]) < MIN_TRAIN_FRAMES:
         raise InputError(f"{video}: {len(frames.names)} usable frames leave fewer than {MIN_TRAIN_FRAMES} to train "
                          "on; use a longer clip, a smaller --every, or --test-every 0")
     check_in_frame(video, tracks)
     check_one_person(video, tracks)
     background_px = check_still_camera(video, frames.images, tracks.masks)
+    if estimate is not None:
+        return _imported_capture(options, frames, tracks, estimate, background_px, clock, inputs)
     with clock("fit_s"):
         body, camera, fit, flips, tracks = _fit(options, frames, tracks, progress)
     meta = _meta(options, frames, body, camera, fit, flips, background_px)
     with atomic_directory(out, kind="capture", inputs=[video]) as tmp:
         with clock("write_s"):
             _write_capture(tmp, frames, tracks, body, camera, fit, meta)
-        build_manifest("capture", tmp, stage="preprocess --video", config=config, inputs=inputs, data=meta,
-                       seed=None, device="cpu", timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes()})
+        _manifest(tmp, options, meta, inputs, clock)
+    return {**_summary(out, frames, clock), "fit_residual_px": round(fit.mean_residual_px(), 2)}
+
+
+def _manifest(tmp: Path, options: VideoOptions, meta: dict, inputs: list[InputRecord], clock: StageClock) -> None:
+    build_manifest("capture", tmp, stage="preprocess --video", config=options.config(), inputs=inputs, data=meta,
+                   seed=None, device="cpu", timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes()})
+
+
+def _summary(out: Path, frames: VideoFrames, clock: StageClock) -> dict:
     seconds = clock.elapsed()
     return {"capture": str(out), "frames": len(frames.names), "source_frames": frames.source_count,
-            "fit_residual_px": round(fit.mean_residual_px(), 2), "seconds": round(seconds, 2),
-            "seconds_per_frame": round(seconds / max(1, len(frames.names)), 3),
+            "seconds": round(seconds, 2), "seconds_per_frame": round(seconds / max(1, len(frames.names)), 3),
             "contact_sheet": str(out / "contact_sheet.png")}
+
+
+def _imported_capture(options: VideoOptions, frames: VideoFrames, tracks: PersonTracks, estimate: Estimate,
+                      background_px: float, clock: StageClock, inputs: list[InputRecord]) -> dict:
+    """The capture with the estimator's SMPL poses in place of igavatar's Anny fit."""
+    with clock("fit_s"):
+        placed = place_estimate(estimate, frames, tracks, options.focal_px, options.fov_deg)
+    meta = _meta_common(options, frames, background_px, "smpl")
+    meta["video"].update(estimate_meta(estimate, placed))
+    with atomic_directory(Path(options.out), kind="capture", inputs=[Path(options.video)]) as tmp:
+        with clock("write_s"):
+            write_estimate_capture(tmp, frames, tracks, estimate, placed, meta)
+        _manifest(tmp, options, meta, inputs, clock)
+    return {**_summary(Path(options.out), frames, clock), "poses_from": estimate.poses.estimator,
+            "body_mask_iou": round(float(placed.body_mask_iou.mean()), 3)}

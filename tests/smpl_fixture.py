@@ -41,25 +41,58 @@ POSE_BASIS = 207
 _ROOT_PARENT_IN_FILE = 4294967295
 
 
-def make_smpl_arrays(seed: int = 0, points_per_bone: int = 10) -> dict:
+def _tube(start: np.ndarray, end: np.ndarray, radius: float, rings: int, sides: int = 8) -> tuple[np.ndarray, list]:
+    """Vertices (rings * sides, 3) of a closed-side tube along a bone, and its quad strips as triangles."""
+    axis = (end - start) / np.linalg.norm(end - start)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    angles = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    circle = radius * (np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v)
+    centers = start + np.linspace(0.0, 1.0, rings)[:, None] * (end - start)
+    vertices = (centers[:, None] + circle[None]).reshape(-1, 3)
+    faces = []
+    for r in range(rings - 1):
+        for k in range(sides):
+            a, b = r * sides + k, r * sides + (k + 1) % sides
+            faces += [(a, b, a + sides), (b, b + sides, a + sides)]
+    return vertices, faces
+
+
+def _bone_points(rng: np.random.Generator, points_per_bone: int, tube_radius: float | None) -> tuple[list, list]:
+    """Per bone: noisy points along it with strip triangles, or (tube_radius) a tube around it."""
+    joints = SMPL_LIKE_REST_JOINTS
+    points, faces = [], []
+    for child in range(1, len(SMPL_PARENTS)):
+        parent = SMPL_PARENTS[child]
+        first = sum(len(p) for p in points)
+        if tube_radius is not None:
+            vertices, tube_faces = _tube(joints[parent], joints[child], tube_radius, max(2, points_per_bone // 4))
+            points.append(vertices)
+            faces += [(first + a, first + b, first + c) for a, b, c in tube_faces]
+            continue
+        t = np.linspace(0.1, 0.9, points_per_bone)[:, None]
+        along = joints[parent] + t * (joints[child] - joints[parent])
+        points.append(along + rng.normal(scale=0.03, size=along.shape))
+        # Strips of consecutive vertices of one bone: real, non-degenerate triangles for masks.
+        faces += [(first + i, first + i + 1, first + i + 2) for i in range(points_per_bone - 2)]
+    return points, faces
+
+
+def make_smpl_arrays(seed: int = 0, points_per_bone: int = 10, tube_radius: float | None = None) -> dict:
     """Arrays of a synthetic SMPL model file, in the official layout and dtypes.
 
     Returns keys v_template (V,3), shapedirs (V,3,10), posedirs (V,3,207), J_regressor
     (24,V) scipy.sparse.csc_matrix, weights (V,24), kintree_table (2,24) int64, f (F,3) uint32,
-    bs_style, bs_type (strings, as in the real files); V = 23 * points_per_bone + 48.
+    bs_style, bs_type (strings, as in the real files); V = 23 * points_per_bone + 48. With
+    `tube_radius` (meters) each bone is a tube of that radius instead, so that the posed body
+    has a silhouette of about a person's width.
     """
     rng = np.random.default_rng(seed)
     joints = SMPL_LIKE_REST_JOINTS
     num_joints = len(SMPL_PARENTS)
-    points, faces = [], []
-    for child in range(1, num_joints):
-        parent = SMPL_PARENTS[child]
-        t = np.linspace(0.1, 0.9, points_per_bone)[:, None]
-        along = joints[parent] + t * (joints[child] - joints[parent])
-        first = sum(len(p) for p in points)
-        points.append(along + rng.normal(scale=0.03, size=along.shape))
-        # Strips of consecutive vertices of one bone: real, non-degenerate triangles for masks.
-        faces += [(first + i, first + i + 1, first + i + 2) for i in range(points_per_bone - 2)]
+    points, faces = _bone_points(rng, points_per_bone, tube_radius)
     pair_offsets = rng.normal(scale=0.015, size=(num_joints, 3))
     first_pair = sum(len(p) for p in points)
     points.append(np.concatenate((joints + pair_offsets, joints - pair_offsets)))
