@@ -254,7 +254,8 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
               "Watch it in a browser": ("view", "view_host", "view_port", "view_mesh_every", "view_mesh_resolution"),
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
-                         "table_adam", "table_lr_factor", "color_normal_gradient"),
+                         "table_adam", "table_lr_factor", "color_normal_gradient", "color_grid",
+                         "error_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
     dataset: Annotated[Optional[Path], typer.Option(help="Dataset directory \\[default: RUN_DIR/dataset].")] = None,
@@ -315,6 +316,15 @@ def train(
         help="Let the colour loss move the surface through the colour network's normal input (the paper's code); "
              "--no-color-normal-gradient detaches it, so that bold patterns are not carved into the geometry "
              "\\[default: the preset's: on].")] = None,
+    color_grid: Annotated[Optional[bool], typer.Option(
+        "--color-grid/--no-color-grid",
+        help="Give the colour network a hash grid of its own (shaped as the SDF's) instead of only the SDF's "
+             "features, which then reach it detached: colour gets its own capacity and no longer pulls on the "
+             "geometry \\[default: the preset's: off].")] = None,
+    error_sampling: Annotated[Optional[float], typer.Option(
+        help="Share of the subject's ray patches, and of the frame draws, sent where a running map of the colour "
+             "error is highest (Instant-NGP's error map) instead of uniformly; 0 is uniform "
+             "\\[default: the preset's: 0].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -329,7 +339,8 @@ def train(
         beta_init=beta_init, beta_final=beta_final, free_space_weight=free_space_weight,
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
-        pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient,
+        pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient, color_grid=color_grid,
+        error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )
     with progress_sink(err_console, quiet=quiet or json_out) as progress:

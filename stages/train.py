@@ -93,6 +93,10 @@ class TrainOptions:
     pose_prior_weight: float | None = None
     #: None: the preset's (the colour loss reaches the geometry through the normal, as the paper's code).
     color_normal_gradient: bool | None = None
+    #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (none).
+    color_grid: bool | None = None
+    #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
+    error_sampling: float | None = None
     #: A browser page that follows the run (stages.train_view); None: no page.
     view: ViewSettings | None = None
 
@@ -120,6 +124,14 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
     if options.color_normal_gradient is not None:
         color = dataclasses.replace(config.avatar.color, normal_gradient=options.color_normal_gradient)
+        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
+    if options.error_sampling is not None:
+        if not 0.0 <= options.error_sampling <= 1.0:
+            raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
+        config = dataclasses.replace(config, error_sampling=options.error_sampling)
+    if options.color_grid is not None:
+        grid = config.avatar.sdf.hash_grid if options.color_grid else None
+        color = dataclasses.replace(config.avatar.color, hash_grid=grid)
         config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:

@@ -296,7 +296,7 @@ def test_a_detached_colour_normal_keeps_the_colour_loss_off_the_surface_normals(
     seen = {}
     real_forward = avatar.color_field.forward
 
-    def forward(feature, normal):
+    def forward(feature, normal, x_canonical=None):
         seen["normal_requires_grad"] = normal.requires_grad
         return real_forward(feature, normal)
 

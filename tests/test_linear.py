@@ -75,6 +75,7 @@ def test_padded_rows_bound_the_padding_and_the_number_of_shapes():
 
 
 def test_padding_the_input_rows_changes_nothing_but_the_shape():
+    torch.manual_seed(10)  # a seed at which unscaled tolerances failed (see below)
     x = torch.randn(1000, 6, requires_grad=True)
     padded = pad_rows(x)
     assert padded.shape == (padded_rows(1000), 6) and torch.equal(padded[:1000], x) and (padded[1000:] == 0).all()
@@ -87,7 +88,9 @@ def test_padding_the_input_rows_changes_nothing_but_the_shape():
     fast_grads = torch.autograd.grad(fast, (x, weight, bias), grad_out)
     reference_grads = torch.autograd.grad(reference, (x, weight, bias), grad_out)
     for got, want in zip(fast_grads, reference_grads):
-        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+        # The weight's gradient sums 1000 rows (entries up to ~60) in another order: float32
+        # round-off of ~2e-5 lands on entries near zero, so the tolerance scales with the largest.
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6 * float(want.abs().max()) + 1e-6)
 
 
 def test_color_and_nonrigid_fields_agree_with_kernels_off_and_on():

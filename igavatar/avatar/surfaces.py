@@ -95,9 +95,10 @@ def surface_colors(avatar: Avatar, points: np.ndarray, chunk: int = 65536) -> np
     device = avatar.canonical_box.device
     colors = []
     for part in torch.from_numpy(np.asarray(points, np.float32)).split(chunk):
-        _, feature, gradient = avatar.sdf_field.forward_with_gradient(part.to(device))
+        x_canonical = part.to(device)
+        _, feature, gradient = avatar.sdf_field.forward_with_gradient(x_canonical)
         normal = torch.nn.functional.normalize(gradient, dim=-1)
-        colors.append(avatar.color_field(feature, normal).cpu())
+        colors.append(avatar.color_field(feature, normal, x_canonical).cpu())
     if not colors:
         return np.zeros((0, 3), np.float32)
     return torch.cat(colors).clamp(0, 1).numpy()

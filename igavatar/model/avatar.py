@@ -85,7 +85,7 @@ class Avatar(nn.Module):
         super().__init__()
         self.config = config
         self.sdf_field = SDFField(config.sdf, canonical_box[0], canonical_box[1])
-        self.color_field = ColorField(config.color)
+        self.color_field = ColorField(config.color, canonical_box[0], canonical_box[1])
         self.density = LaplaceDensity(config.density)
         self.nonrigid = NonRigidOffset(
             NonRigidConfig(
@@ -176,10 +176,11 @@ class Avatar(nn.Module):
             FieldOutput with sigma (M,), rgb (M, 3), sdf (M,) and the analytic SDF gradient (M, 3)
             (closed form, so it costs no double backward), differentiable wrt the parameters.
         """
-        sdf, feature, gradient = self.sdf_field.forward_with_gradient(self.offset_points(x_rigid, pose_condition, nonrigid))
+        x_canonical = self.offset_points(x_rigid, pose_condition, nonrigid)
+        sdf, feature, gradient = self.sdf_field.forward_with_gradient(x_canonical)
         normal = F.normalize(gradient, dim=-1, eps=1e-12)
         # A detached normal keeps the colour loss from tilting the surface (ColorFieldConfig.normal_gradient).
-        rgb = self.color_field(feature, normal if self.config.color.normal_gradient else normal.detach())
+        rgb = self.color_field(feature, normal if self.config.color.normal_gradient else normal.detach(), x_canonical)
         sigma = self.density(sdf)
         if sigma_noise_std > 0:
             noise = torch.randn(sigma.shape, generator=generator, device=sigma.device, dtype=sigma.dtype)

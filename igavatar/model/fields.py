@@ -272,6 +272,11 @@ class ColorFieldConfig:
     False detaches the normal: a dark stripe can then no longer be explained by tilting the
     surface (texture copied into the geometry, issue 36)."""
 
+    hash_grid: HashGridConfig | None = None
+    """A hash grid of the colour's own on the canonical point, whose features are added to the
+    input, or None (the official code: the SDF's features only). With it the SDF's features reach
+    the colour detached, so colour neither borrows the geometry's capacity nor pushes on it."""
+
     def __post_init__(self) -> None:
         name = "ColorFieldConfig"
         _require(name, "feature_dim", self.feature_dim, self.feature_dim >= 1, "must be >= 1")
@@ -280,29 +285,45 @@ class ColorFieldConfig:
 
 
 class ColorField(nn.Module):
-    """Canonical color: ``(feature (P, feature_dim), normal_canonical (P, 3)) -> rgb (P, 3)`` in [0, 1]."""
+    """Canonical color: ``(feature (P, feature_dim), normal_canonical (P, 3)[, x_canonical (P, 3)])
+    -> rgb (P, 3)`` in [0, 1]; x_canonical is read by the colour's own hash grid when it has one."""
 
-    def __init__(self, config: ColorFieldConfig) -> None:
+    def __init__(self, config: ColorFieldConfig, box_min: torch.Tensor | None = None,
+                 box_max: torch.Tensor | None = None) -> None:
         super().__init__()
         self.config = config
-        dims = [config.feature_dim + 3] + [config.hidden_dim] * config.n_hidden_layers
+        grid_dim = 0
+        if config.hash_grid is not None:
+            if box_min is None or box_max is None:
+                raise ValueError("ColorField: a colour hash grid needs the canonical box")
+            self.encoding = HashGridEncoding(config.hash_grid, box_min, box_max)
+            grid_dim = self.encoding.output_dim
+        dims = [config.feature_dim + 3 + grid_dim] + [config.hidden_dim] * config.n_hidden_layers
         layers: list[nn.Module] = []
         for d_in, d_out in zip(dims[:-1], dims[1:]):
             layers += [nn.Linear(d_in, d_out), nn.ReLU()]
         layers.append(nn.Linear(dims[-1], 3))
         self.mlp = nn.Sequential(*layers)
 
-    def forward(self, feature: torch.Tensor, normal_canonical: torch.Tensor) -> torch.Tensor:
-        """``feature (P, feature_dim)``, ``normal_canonical (P, 3)`` (unit) -> ``rgb (P, 3)`` in [0, 1]."""
+    def forward(self, feature: torch.Tensor, normal_canonical: torch.Tensor,
+                x_canonical: torch.Tensor | None = None) -> torch.Tensor:
+        """``feature (P, feature_dim)``, ``normal_canonical (P, 3)`` (unit), ``x_canonical (P, 3)``
+        (needed with a colour hash grid) -> ``rgb (P, 3)`` in [0, 1]."""
         if feature.shape[:-1] != normal_canonical.shape[:-1] or feature.shape[-1] != self.config.feature_dim \
                 or normal_canonical.shape[-1] != 3:
             raise ValueError(
                 f"ColorField: expected feature (P, {self.config.feature_dim}) and normal_canonical (P, 3), "
                 f"got {tuple(feature.shape)} and {tuple(normal_canonical.shape)}"
             )
+        inputs = [feature, normal_canonical]
+        if self.config.hash_grid is not None:
+            if x_canonical is None or x_canonical.shape != normal_canonical.shape:
+                raise ValueError("ColorField: a colour hash grid needs x_canonical (P, 3)")
+            # The geometry's features stay an input but take no gradient from colour.
+            inputs = [feature.detach(), normal_canonical, self.encoding(x_canonical)]
         # The same network as self.mlp (Linear, ReLU, ..., Linear), on rows padded to a cached
         # matrix shape when the fast path applies (see linear.pad_rows), sliced at the output.
-        h = pad_rows(torch.cat((feature, normal_canonical), dim=-1))
+        h = pad_rows(torch.cat(inputs, dim=-1))
         for layer in self.mlp[:-1:2]:
             h = linear(h, layer.weight, layer.bias, relu=True)
         return torch.sigmoid(linear(h, self.mlp[-1].weight, self.mlp[-1].bias)[: feature.shape[0]])

@@ -54,6 +54,12 @@ class TrainConfig:
     """Edge of each ray patch in pixels (paper: four 32x32 patches = 4096 rays)."""
     patch_centres_in_mask: float = 0.9
     """Fraction of patches centerd on a mask pixel; the rest anywhere in the subject's box."""
+    error_sampling: float = 0.0
+    """Share of the subject-centred patches, and of the frame draws, steered by a running map of
+    the colour error (igavatar.training.error_map: Instant-NGP's error map), so rays go where the
+    renders are wrong (textures, edges, a face); 0 draws uniformly (the paper)."""
+    error_cell_px: int = 16
+    """Edge in pixels of the error map's cells."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2
@@ -285,6 +291,10 @@ def _from_json(cls, value):
             continue  # written by an older version: keep the default
         raw = value[item.name]
         kind = hints[item.name]
+        # An optional dataclass (`HashGridConfig | None`): its dataclass when the JSON holds one.
+        options = [k for k in typing.get_args(kind) if dataclasses.is_dataclass(k)]
+        if isinstance(raw, dict) and len(options) == 1:
+            kind = options[0]
         if dataclasses.is_dataclass(kind):
             kwargs[item.name] = _from_json(kind, raw)
         elif isinstance(raw, list):

@@ -56,6 +56,7 @@ def sample_patch_pixels(
     patch_size: int,
     in_mask_fraction: float,
     generator: torch.Generator,
+    steered_centres: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Pixels of `n_patches` square patches, most centerd on the subject.
 
@@ -66,13 +67,18 @@ def sample_patch_pixels(
         in_mask_fraction: share of patches centerd on a mask pixel; the others are centerd
             uniformly in the mask's bounding box grown by half its size (background context).
         generator: CPU RNG.
+        steered_centres: (E, 2) centres chosen elsewhere (an error map's), taking E of the
+            subject-centred patches' places; None or E = 0 draws them all uniformly.
     Returns:
         (n_patches * patch_size^2, 2) long pixel coordinates (x, y), patch by patch, row-major.
     """
     height, width = image_size
     size = min(patch_size, height, width)
     n_in = int(round(n_patches * in_mask_fraction))
-    centers = mask_pixels[torch.randint(0, mask_pixels.shape[0], (n_in,), generator=generator)].float()
+    steered = 0 if steered_centres is None else min(int(steered_centres.shape[0]), n_in)
+    centers = mask_pixels[torch.randint(0, mask_pixels.shape[0], (n_in - steered,), generator=generator)].float()
+    if steered:
+        centers = torch.cat((steered_centres[:steered].float(), centers))
     if n_patches > n_in:
         lo, hi = mask_pixels.amin(0).float(), mask_pixels.amax(0).float()
         grow = 0.5 * (hi - lo)

@@ -42,6 +42,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
+from igavatar.training.error_map import ErrorMap
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
@@ -79,9 +80,10 @@ class Trainer:
         self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
         box = avatar.canonical_box
         self.canonical_grid = OccupancyGrid(box[0], box[1], resolution=config.occupancy_resolution).to(self.device)
-        table = [p for n, p in avatar.named_parameters() if n.startswith("sdf_field.encoding.")]
+        tables = ("sdf_field.encoding.", "color_field.encoding.")
+        table = [p for n, p in avatar.named_parameters() if n.startswith(tables)]
         beta = [p for n, p in avatar.named_parameters() if n.startswith("density.")]
-        networks = [p for n, p in avatar.named_parameters() if not n.startswith(("sdf_field.encoding.", "density."))]
+        networks = [p for n, p in avatar.named_parameters() if not n.startswith((*tables, "density."))]
         self._base_lrs = [config.lr * config.table_lr_factor, config.lr * config.network_lr_factor, config.lr * config.beta_lr_factor]
         groups = [{"params": group, "lr": lr} for group, lr in zip((table, networks, beta), self._base_lrs)]
         # The table's entries are reached only where samples fall; tiny-cuda-nn's Adam leaves the
@@ -97,6 +99,8 @@ class Trainer:
         self.pose_optimizer = None if pose_refiner is None else SparseAdam(
             self.pose_refiner.parameters(), lr=config.pose_lr, betas=(0.9, 0.99), eps=1e-8)
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
+        self.error_map = None if config.error_sampling <= 0 else ErrorMap(
+            int(data.images.shape[0]), data.image_size, config.error_cell_px)
         self.hull: CanonicalHull | None = None
         self._hull_cells_cache: torch.Tensor | None = None
         if config.loss_weights.free_space > 0 or config.hull_in_occupancy:
@@ -243,6 +247,25 @@ class Trainer:
                 terms["fd_eikonal"], terms["curvature"] = fd_eik, warm * curvature
         return terms
 
+    def _draw_frame(self) -> int:
+        """The step's training frame: uniform, or partly by the error map (config.error_sampling)."""
+        frames = self.data.train_indices
+        if self.error_map is not None:
+            return self.error_map.draw_frame(frames, self.generator, self.config.error_sampling)
+        return int(frames[torch.randint(0, len(frames), (1,), generator=self.generator)])
+
+    def _draw_pixels(self, index: int) -> torch.Tensor:
+        """The step's patch pixels (P, 2) of frame `index`; some centres steered by the error map."""
+        config = self.config
+        mask_pixels = self.data.mask_pixels(index)
+        steered = None
+        if self.error_map is not None:
+            n_in = int(round(self._patches_per_step * config.patch_centres_in_mask))
+            n_steered = int(round(n_in * config.error_sampling))
+            steered = self.error_map.draw_centres(index, mask_pixels, n_steered, self.generator)
+        return sample_patch_pixels(mask_pixels, self.data.image_size, self._patches_per_step, config.patch_size,
+                                   config.patch_centres_in_mask, self.generator, steered)
+
     def train_step(self) -> dict[str, float]:
         """One optimization step; returns the step's scalar logs."""
         started = time.perf_counter()
@@ -252,15 +275,12 @@ class Trainer:
         self.avatar.train()
         self._apply_schedule()
 
-        index = int(data.train_indices[torch.randint(0, len(data.train_indices), (1,), generator=self.generator)])
+        index = self._draw_frame()
         posed = PosedAvatar(self.avatar, self.prepared_frame(index), data.pose_condition[index].to(device))
         posed_box = data.posed_boxes[index].to(device)
         posed_grid = posed.occupancy(self.canonical_grid, posed_box, config.occupancy_resolution)
 
-        pixels = sample_patch_pixels(
-            data.mask_pixels(index), data.image_size, self._patches_per_step, config.patch_size,
-            config.patch_centres_in_mask, self.generator,
-        )
+        pixels = self._draw_pixels(index)
         target_rgb = data.images[index][pixels[:, 1], pixels[:, 0]].to(device, torch.float32) / 255.0
         target_mask = data.masks[index][pixels[:, 1], pixels[:, 0]].to(device, torch.float32)
         background = torch.rand(target_rgb.shape, generator=self.generator).to(device)
@@ -289,6 +309,8 @@ class Trainer:
             return posed.fields_at(x_canonical, sigma_noise_std=noise_std, generator=field_generator)
 
         out = render_rays(canonical_samples, field_fn, background)
+        if self.error_map is not None:
+            self.error_map.record(index, pixels, (out.rgb.detach() - target).abs().mean(dim=-1))
         terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
         terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
@@ -369,6 +391,7 @@ class Trainer:
             "rays_seen": self.rays_seen,
             "pose_refiner": None if self.pose_refiner is None else self.pose_refiner.state_dict(),
             "pose_optimizer": None if self.pose_optimizer is None else self.pose_optimizer.state_dict(),
+            "error_map": None if self.error_map is None else self.error_map.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -390,4 +413,6 @@ class Trainer:
         if self.pose_refiner is not None:
             self.pose_refiner.load_state_dict(state["pose_refiner"])
             self.pose_optimizer.load_state_dict(state["pose_optimizer"])
+        if self.error_map is not None:
+            self.error_map.load_state_dict(state["error_map"])
         self._prepared.clear()

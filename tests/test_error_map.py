@@ -1,0 +1,118 @@
+"""The error map steers draws in proportion to its cells, follows the renders' errors, trains and
+resumes exactly; the colour field's own hash grid trains, reloads and keeps colour off the geometry's features."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from igavatar.avatar.dataset import read_dataset, training_data
+from igavatar.avatar.model import build_avatar
+from igavatar.model.fields import ColorField, ColorFieldConfig
+from igavatar.model.hashgrid import HashGridConfig
+from igavatar.training.checkpoint import flatten, load_state, save_state
+from igavatar.training.config import config_from_json, preset
+from igavatar.training.error_map import ErrorMap
+from igavatar.training.trainer import Trainer
+
+
+def _all_pixels(height: int, width: int) -> torch.Tensor:
+    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    return torch.stack((xs.reshape(-1), ys.reshape(-1)), dim=-1)
+
+
+def test_centres_are_drawn_in_proportion_to_the_cells_errors():
+    errors = ErrorMap(2, (64, 64), cell_px=16, floor=0.25)
+    cells = torch.full((4, 4), 0.1)
+    cells[1, 2], cells[3, 0] = 1.0, 0.5
+    errors.cells[1] = cells
+    # The subject covers the left 3/4 of the image: cell (3, 3) column has no subject pixels.
+    pixels = _all_pixels(64, 64)
+    pixels = pixels[pixels[:, 0] < 48]
+    centres = errors.draw_centres(1, pixels, 60000, torch.Generator().manual_seed(0))
+    drawn = torch.zeros(4, 4).index_put_((centres[:, 1].long() // 16, centres[:, 0].long() // 16),
+                                         torch.ones(len(centres)), accumulate=True) / len(centres)
+    expected = (cells + 0.25 * cells.mean())
+    expected[:, 3] = 0  # no subject pixel there
+    expected /= expected.sum()
+    assert torch.allclose(drawn, expected, atol=0.006), (drawn, expected)
+    assert drawn[1, 2] > 5 * drawn[0, 0]
+
+
+def test_frames_are_drawn_by_their_mean_error_with_the_given_share():
+    errors = ErrorMap(4, (32, 32), cell_px=16)
+    errors.cells[:] = torch.tensor([0.1, 0.1, 0.6, 0.2])[:, None, None]
+    frames = torch.tensor([0, 2, 3])
+    generator = torch.Generator().manual_seed(1)
+    for share, expected in ((1.0, [0.1 / 0.9, 0.6 / 0.9, 0.2 / 0.9]), (0.0, [1 / 3] * 3)):
+        draws = [errors.draw_frame(frames, generator, share) for _ in range(9000)]
+        counts = np.array([draws.count(int(f)) for f in frames]) / len(draws)
+        assert np.allclose(counts, expected, atol=0.02), (share, counts)
+
+
+def test_recorded_errors_move_only_the_cells_they_fell_in():
+    errors = ErrorMap(1, (32, 48), cell_px=16, rate=0.3, initial=1.0)
+    pixels = torch.tensor([[1, 1], [5, 9], [40, 20]])
+    errors.record(0, pixels, torch.tensor([0.2, 0.4, 0.0]))
+    assert errors.cells.shape == (1, 2, 3)
+    assert torch.isclose(errors.cells[0, 0, 0], torch.tensor(0.7 + 0.3 * 0.3))  # mean 0.3 of its two rays
+    assert torch.isclose(errors.cells[0, 1, 2], torch.tensor(0.7))
+    assert (errors.cells[0][[0, 0, 1, 1], [1, 2, 0, 1]] == 1.0).all()
+
+
+def _trainer(dataset: Path, **overrides) -> Trainer:
+    artifact = read_dataset(dataset)
+    config = dataclasses.replace(preset("tiny"), **overrides)
+    torch.manual_seed(config.seed)
+    avatar = build_avatar(config, artifact.subject, artifact.data["pose_dim"])
+    return Trainer(config, training_data(artifact), avatar)
+
+
+def test_steered_training_learns_its_map_and_resumes_exactly(small_run, tmp_path):
+    straight = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
+    logs = [straight.train_step() for _ in range(4)]
+    assert all(np.isfinite(log["loss"]) for log in logs)
+    assert (straight.error_map.cells < 1.0).any()  # the renders' errors replaced the initial value
+
+    first = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
+    for _ in range(2):
+        first.train_step()
+    save_state(tmp_path / "ckpt.npz", {"trainer": first.state_dict()})
+    resumed = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
+    resumed.load_state_dict(load_state(tmp_path / "ckpt.npz")["trainer"])
+    for _ in range(2):
+        resumed.train_step()
+    expected, got = flatten(straight.avatar.state_dict()), flatten(resumed.avatar.state_dict())
+    for key, value in expected.items():
+        assert np.array_equal(got[key], value), key
+    assert torch.equal(straight.error_map.cells, resumed.error_map.cells)
+
+
+def test_the_colour_grid_gives_colour_its_own_table_and_no_pull_on_the_sdf_features():
+    grid = HashGridConfig(n_levels=3, log2_hashmap_size=10, base_resolution=4, finest_resolution=16)
+    color = ColorField(ColorFieldConfig(feature_dim=8, hidden_dim=16, hash_grid=grid), -torch.ones(3), torch.ones(3))
+    feature = torch.randn(32, 8, requires_grad=True)
+    normal = torch.nn.functional.normalize(torch.randn(32, 3), dim=-1)
+    x = torch.rand(32, 3) * 2 - 1
+    color(feature, normal, x).sum().backward()
+    assert feature.grad is None  # detached: colour cannot reshape the geometry through its features
+    assert color.encoding.table.grad is not None and color.encoding.table.grad.abs().sum() > 0
+
+
+def test_a_colour_grid_model_trains_with_its_table_in_the_sparse_optimizer(small_run):
+    config = preset("tiny")
+    grid = config.avatar.sdf.hash_grid
+    avatar = dataclasses.replace(config.avatar, color=dataclasses.replace(config.avatar.color, hash_grid=grid))
+    trainer = _trainer(small_run / "dataset", steps=3, avatar=avatar)
+    table = trainer.avatar.color_field.encoding.table
+    assert any(p is table for group in trainer.table_optimizer.param_groups for p in group["params"])
+    before = table.detach().clone()
+    for _ in range(3):
+        trainer.train_step()
+    assert not torch.equal(before, table.detach())
+    # The config (an optional nested dataclass) survives the manifest's JSON.
+    again = config_from_json(dataclasses.asdict(trainer.config))
+    assert again.avatar.color.hash_grid == grid
