@@ -4,19 +4,15 @@ resumes exactly; the colour field's own hash grid trains, reloads and keeps colo
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from igavatar.avatar.dataset import read_dataset, training_data
-from igavatar.avatar.model import build_avatar
 from igavatar.model.fields import ColorField, ColorFieldConfig
 from igavatar.model.hashgrid import HashGridConfig
-from igavatar.training.checkpoint import flatten, load_state, save_state
 from igavatar.training.config import config_from_json, preset
 from igavatar.training.error_map import ErrorMap
-from igavatar.training.trainer import Trainer
+from tests.test_train import _trainer
 
 
 def _all_pixels(height: int, width: int) -> torch.Tensor:
@@ -63,32 +59,12 @@ def test_recorded_errors_move_only_the_cells_they_fell_in():
     assert (errors.cells[0][[0, 0, 1, 1], [1, 2, 0, 1]] == 1.0).all()
 
 
-def _trainer(dataset: Path, **overrides) -> Trainer:
-    artifact = read_dataset(dataset)
-    config = dataclasses.replace(preset("tiny"), **overrides)
-    torch.manual_seed(config.seed)
-    avatar = build_avatar(config, artifact.subject, artifact.data["pose_dim"])
-    return Trainer(config, training_data(artifact), avatar)
-
-
-def test_steered_training_learns_its_map_and_resumes_exactly(small_run, tmp_path):
-    straight = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
-    logs = [straight.train_step() for _ in range(4)]
+def test_steered_training_learns_its_map(small_run):
+    """(Exact resume with the map: test_train.test_resume_continues_exactly[error-map].)"""
+    trainer = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
+    logs = [trainer.train_step() for _ in range(4)]
     assert all(np.isfinite(log["loss"]) for log in logs)
-    assert (straight.error_map.cells < 1.0).any()  # the renders' errors replaced the initial value
-
-    first = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
-    for _ in range(2):
-        first.train_step()
-    save_state(tmp_path / "ckpt.npz", {"trainer": first.state_dict()})
-    resumed = _trainer(small_run / "dataset", steps=4, error_sampling=1.0)
-    resumed.load_state_dict(load_state(tmp_path / "ckpt.npz")["trainer"])
-    for _ in range(2):
-        resumed.train_step()
-    expected, got = flatten(straight.avatar.state_dict()), flatten(resumed.avatar.state_dict())
-    for key, value in expected.items():
-        assert np.array_equal(got[key], value), key
-    assert torch.equal(straight.error_map.cells, resumed.error_map.cells)
+    assert (trainer.error_map.cells < 1.0).any()  # the renders' errors replaced the initial value
 
 
 def test_the_colour_grid_gives_colour_its_own_table_and_no_pull_on_the_sdf_features():

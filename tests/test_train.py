@@ -59,22 +59,25 @@ def test_training_is_deterministic_with_a_seed(small_run):
         assert np.array_equal(value, second[key]), key
 
 
-def test_resume_continues_exactly(small_run, tmp_path):
-    straight = _trainer(small_run / "dataset", steps=4)
+@pytest.mark.parametrize("overrides", [{}, {"error_sampling": 1.0}], ids=["uniform", "error-map"])
+def test_resume_continues_exactly(small_run, tmp_path, overrides):
+    straight = _trainer(small_run / "dataset", steps=4, **overrides)
     for _ in range(4):
         straight.train_step()
 
-    first = _trainer(small_run / "dataset", steps=4)
+    first = _trainer(small_run / "dataset", steps=4, **overrides)
     for _ in range(2):
         first.train_step()
     save_state(tmp_path / "ckpt.npz", {"trainer": first.state_dict()})
-    resumed = _trainer(small_run / "dataset", steps=4)
+    resumed = _trainer(small_run / "dataset", steps=4, **overrides)
     resumed.load_state_dict(load_state(tmp_path / "ckpt.npz")["trainer"])
     for _ in range(2):
         resumed.train_step()
     expected, got = flatten(straight.avatar.state_dict()), flatten(resumed.avatar.state_dict())
     for key, value in expected.items():
         assert np.array_equal(got[key], value), key
+    if straight.error_map is not None:  # the map is part of the state: the same draws after resuming
+        assert torch.equal(straight.error_map.cells, resumed.error_map.cells)
 
 
 def test_every_learned_part_is_optimized_including_non_rigid(small_run):
