@@ -93,6 +93,8 @@ class TrainOptions:
     pose_prior_weight: float | None = None
     #: None: the preset's (the colour loss reaches the geometry through the normal, as the paper's code).
     color_normal_gradient: bool | None = None
+    #: False: the SDF's features reach the colour network detached; None: the preset's.
+    color_feature_gradient: bool | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (none).
     color_grid: bool | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
@@ -129,10 +131,12 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 0.0 <= options.error_sampling <= 1.0:
             raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
         config = dataclasses.replace(config, error_sampling=options.error_sampling)
+    color = config.avatar.color
     if options.color_grid is not None:
-        grid = config.avatar.sdf.hash_grid if options.color_grid else None
-        color = dataclasses.replace(config.avatar.color, hash_grid=grid)
-        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
+        color = dataclasses.replace(color, hash_grid=config.avatar.sdf.hash_grid if options.color_grid else None)
+    if options.color_feature_gradient is not None:
+        color = dataclasses.replace(color, feature_gradient=options.color_feature_gradient)
+    config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:
             raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")

@@ -67,9 +67,10 @@ def test_steered_training_learns_its_map(small_run):
     assert (trainer.error_map.cells < 1.0).any()  # the renders' errors replaced the initial value
 
 
-def test_the_colour_grid_gives_colour_its_own_table_and_no_pull_on_the_sdf_features():
+def test_the_colour_grid_gives_colour_its_own_table_and_detached_features_no_pull_on_the_sdf():
     grid = HashGridConfig(n_levels=3, log2_hashmap_size=10, base_resolution=4, finest_resolution=16)
-    color = ColorField(ColorFieldConfig(feature_dim=8, hidden_dim=16, hash_grid=grid), -torch.ones(3), torch.ones(3))
+    config = ColorFieldConfig(feature_dim=8, hidden_dim=16, hash_grid=grid, feature_gradient=False)
+    color = ColorField(config, -torch.ones(3), torch.ones(3))
     feature = torch.randn(32, 8, requires_grad=True)
     normal = torch.nn.functional.normalize(torch.randn(32, 3), dim=-1)
     x = torch.rand(32, 3) * 2 - 1

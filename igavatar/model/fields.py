@@ -272,10 +272,14 @@ class ColorFieldConfig:
     False detaches the normal: a dark stripe can then no longer be explained by tilting the
     surface (texture copied into the geometry, issue 36)."""
 
+    feature_gradient: bool = True
+    """Whether the colour loss reaches the geometry through the SDF's features (the official code).
+    False detaches them: the colour network reads the geometry's features but cannot reshape the
+    field to suit its colours, the main channel by which bold stripes were carved (issue 36)."""
+
     hash_grid: HashGridConfig | None = None
     """A hash grid of the colour's own on the canonical point, whose features are added to the
-    input, or None (the official code: the SDF's features only). With it the SDF's features reach
-    the colour detached, so colour neither borrows the geometry's capacity nor pushes on it."""
+    input, or None (the official code: the SDF's features only)."""
 
     def __post_init__(self) -> None:
         name = "ColorFieldConfig"
@@ -315,12 +319,11 @@ class ColorField(nn.Module):
                 f"ColorField: expected feature (P, {self.config.feature_dim}) and normal_canonical (P, 3), "
                 f"got {tuple(feature.shape)} and {tuple(normal_canonical.shape)}"
             )
-        inputs = [feature, normal_canonical]
+        inputs = [feature if self.config.feature_gradient else feature.detach(), normal_canonical]
         if self.config.hash_grid is not None:
             if x_canonical is None or x_canonical.shape != normal_canonical.shape:
                 raise ValueError("ColorField: a colour hash grid needs x_canonical (P, 3)")
-            # The geometry's features stay an input but take no gradient from colour.
-            inputs = [feature.detach(), normal_canonical, self.encoding(x_canonical)]
+            inputs.append(self.encoding(x_canonical))
         # The same network as self.mlp (Linear, ReLU, ..., Linear), on rows padded to a cached
         # matrix shape when the fast path applies (see linear.pad_rows), sliced at the output.
         h = pad_rows(torch.cat(inputs, dim=-1))
