@@ -1,16 +1,12 @@
-"""The error map steers draws in proportion to its cells, follows the renders' errors, trains and
-resumes exactly; the colour field's own hash grid trains, reloads and keeps colour off the geometry's features."""
+"""The error map steers draws in proportion to its cells, follows the renders' errors and trains
+(its exact resume: test_train.test_resume_continues_exactly)."""
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import torch
 
-from igavatar.model.fields import ColorField, ColorFieldConfig
-from igavatar.model.hashgrid import HashGridConfig
-from igavatar.training.config import config_from_json, preset
 from igavatar.training.error_map import ErrorMap
 from tests.test_train import _trainer
 
@@ -65,31 +61,3 @@ def test_steered_training_learns_its_map(small_run):
     logs = [trainer.train_step() for _ in range(4)]
     assert all(np.isfinite(log["loss"]) for log in logs)
     assert (trainer.error_map.cells < 1.0).any()  # the renders' errors replaced the initial value
-
-
-def test_the_colour_grid_gives_colour_its_own_table_and_detached_features_no_pull_on_the_sdf():
-    grid = HashGridConfig(n_levels=3, log2_hashmap_size=10, base_resolution=4, finest_resolution=16)
-    config = ColorFieldConfig(feature_dim=8, hidden_dim=16, hash_grid=grid, feature_gradient=False)
-    color = ColorField(config, -torch.ones(3), torch.ones(3))
-    feature = torch.randn(32, 8, requires_grad=True)
-    normal = torch.nn.functional.normalize(torch.randn(32, 3), dim=-1)
-    x = torch.rand(32, 3) * 2 - 1
-    color(feature, normal, x).sum().backward()
-    assert feature.grad is None  # detached: colour cannot reshape the geometry through its features
-    assert color.encoding.table.grad is not None and color.encoding.table.grad.abs().sum() > 0
-
-
-def test_a_colour_grid_model_trains_with_its_table_in_the_sparse_optimizer(small_run):
-    config = preset("tiny")
-    grid = config.avatar.sdf.hash_grid
-    avatar = dataclasses.replace(config.avatar, color=dataclasses.replace(config.avatar.color, hash_grid=grid))
-    trainer = _trainer(small_run / "dataset", steps=3, avatar=avatar)
-    table = trainer.avatar.color_field.encoding.table
-    assert any(p is table for group in trainer.table_optimizer.param_groups for p in group["params"])
-    before = table.detach().clone()
-    for _ in range(3):
-        trainer.train_step()
-    assert not torch.equal(before, table.detach())
-    # The config (an optional nested dataclass) survives the manifest's JSON.
-    again = config_from_json(dataclasses.asdict(trainer.config))
-    assert again.avatar.color.hash_grid == grid
