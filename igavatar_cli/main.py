@@ -254,7 +254,8 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
               "Watch it in a browser": ("view", "view_host", "view_port", "view_mesh_every", "view_mesh_resolution"),
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
-                         "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_grid",
+                         "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_shapes_geometry",
+                         "color_grid",
                          "error_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
@@ -320,9 +321,14 @@ def train(
         "--color-feature-gradient/--no-color-feature-gradient",
         help="Let the colour loss reshape the geometry through the SDF features the colour network reads (the "
              "paper's code); --no-color-feature-gradient detaches them \\[default: the preset's: on].")] = None,
+    color_shapes_geometry: Annotated[Optional[bool], typer.Option(
+        "--color-shapes-geometry/--no-color-shapes-geometry",
+        help="Let the colour loss move the surface through the volume-rendering weights (the paper); "
+             "--no-color-shapes-geometry leaves the shape to the masks, priors and regularizers "
+             "\\[default: the preset's: on].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
-        help="Give the colour network a hash grid of its own (shaped as the SDF's) beside the SDF's features "
+        help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features "
              "\\[default: the preset's: off].")] = None,
     error_sampling: Annotated[Optional[float], typer.Option(
         help="Share of the subject's ray patches, and of the frame draws, sent where a running map of the colour "
@@ -343,7 +349,7 @@ def train(
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient, color_grid=color_grid,
-        color_feature_gradient=color_feature_gradient,
+        color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
         error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )

@@ -39,7 +39,7 @@ from igavatar.interrupts import deferred_interrupts, raise_if_interrupted
 from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import save_state
-from igavatar.training.config import TrainConfig, preset, with_overrides
+from igavatar.training.config import TrainConfig, color_grid_config, preset, with_overrides
 from igavatar.training.run_state import TrainingLog, cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
@@ -95,6 +95,8 @@ class TrainOptions:
     color_normal_gradient: bool | None = None
     #: False: the SDF's features reach the colour network detached; None: the preset's.
     color_feature_gradient: bool | None = None
+    #: False: the colour loss does not reach the compositing weights (the geometry); None: the preset's.
+    color_shapes_geometry: bool | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (none).
     color_grid: bool | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
@@ -131,9 +133,11 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 0.0 <= options.error_sampling <= 1.0:
             raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
         config = dataclasses.replace(config, error_sampling=options.error_sampling)
+    if options.color_shapes_geometry is not None:
+        config = dataclasses.replace(config, color_shapes_geometry=options.color_shapes_geometry)
     color = config.avatar.color
     if options.color_grid is not None:
-        color = dataclasses.replace(color, hash_grid=config.avatar.sdf.hash_grid if options.color_grid else None)
+        color = dataclasses.replace(color, hash_grid=color_grid_config(config.avatar.sdf.hash_grid) if options.color_grid else None)
     if options.color_feature_gradient is not None:
         color = dataclasses.replace(color, feature_gradient=options.color_feature_gradient)
     config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))

@@ -62,11 +62,13 @@ def test_the_colour_grid_gives_colour_its_own_table_and_detached_features_no_pul
     assert color.encoding.table.grad is not None and color.encoding.table.grad.abs().sum() > 0
 
 
-def test_a_colour_grid_model_trains_with_its_table_in_the_sparse_optimizer(small_run):
+def test_a_decoupled_model_trains_with_the_colour_table_in_the_sparse_optimizer(small_run):
+    """The colour grid, detached features and normal, and the colour composited on fixed weights."""
     config = preset("tiny")
     grid = config.avatar.sdf.hash_grid
-    avatar = dataclasses.replace(config.avatar, color=dataclasses.replace(config.avatar.color, hash_grid=grid))
-    trainer = _trainer(small_run / "dataset", steps=3, avatar=avatar)
+    color = dataclasses.replace(config.avatar.color, hash_grid=grid, feature_gradient=False, normal_gradient=False)
+    avatar = dataclasses.replace(config.avatar, color=color)
+    trainer = _trainer(small_run / "dataset", steps=3, avatar=avatar, color_shapes_geometry=False)
     table = trainer.avatar.color_field.encoding.table
     assert any(p is table for group in trainer.table_optimizer.param_groups for p in group["params"])
     before = table.detach().clone()

@@ -157,6 +157,26 @@ def test_uniform_medium_opacity_color_and_gradient_closed_form() -> None:
     assert out.gradient is None and out.sdf is None
 
 
+def test_colour_on_fixed_weights_is_the_same_picture_with_no_gradient_to_the_density() -> None:
+    gen = torch.Generator().manual_seed(3)
+    rays = uniform_medium_rays(8, gen)
+    log_c = torch.tensor(math.log(1.3), requires_grad=True)
+    color = torch.tensor([0.2, 0.7, 0.4], requires_grad=True)
+
+    def field(x: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"sigma": log_c.exp().expand(x.shape[0]), "rgb": color.expand(x.shape[0], 3)}
+
+    background = torch.rand(8, 3, generator=gen)
+    out = render_rays(sample_along_rays(rays, 21, generator=gen), field, background)
+    fixed = out.rgb_on_fixed_weights(background)
+    assert torch.allclose(fixed, out.rgb, atol=1e-6)
+    (grad_c_fixed, grad_color_fixed) = torch.autograd.grad(fixed.sum(), (log_c, color), allow_unused=True,
+                                                           retain_graph=True)
+    (grad_c, grad_color) = torch.autograd.grad(out.rgb.sum(), (log_c, color))
+    assert grad_c_fixed is None and float(grad_c.abs()) > 0  # the density gets nothing from it
+    assert torch.allclose(grad_color_fixed, grad_color, atol=1e-6)  # the colours get the same
+
+
 def test_huge_density_is_stable() -> None:
     gen = torch.Generator().manual_seed(3)
     rays = uniform_medium_rays(4, gen)

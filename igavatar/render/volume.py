@@ -99,6 +99,7 @@ class RenderOutput:
             term takes ``gradient[valid]`` (M, 3); the smoothness term takes (gradient, valid).
             None only when the field returned no gradient; all zeros when it was never called.
         sdf: (R, S) or None; zeros on invalid samples (same None rule as ``gradient``).
+        sample_rgb: (R, S, 3) the field's colour at each sample, zeros on invalid samples.
     """
 
     rgb: Tensor
@@ -111,6 +112,13 @@ class RenderOutput:
     valid: Tensor
     gradient: Tensor | None
     sdf: Tensor | None
+    sample_rgb: Tensor | None = None
+
+    def rgb_on_fixed_weights(self, background: Tensor) -> Tensor:
+        """(R, 3) the same composite as `rgb`, through which a loss reaches the colours only, not
+        the weights (and so not the geometry): sum_i sg(w_i) c_i + (1 - sg(opacity)) background."""
+        weights = self.weights.detach()
+        return (weights[..., None] * self.sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
 
 
 def _scatter(values: Tensor, mask: Tensor) -> Tensor:
@@ -273,6 +281,7 @@ def _output(samples: RaySamples, background: Tensor, chunks: list[_Chunk], weigh
         # losses see an empty selection instead of a missing tensor.
         gradient=_join([c.gradient for c in chunks]) if optional.gradient is not False else None,
         sdf=_join([c.sdf for c in chunks]) if optional.sdf is not False else None,
+        sample_rgb=rgb_samples,
     )
 
 

@@ -60,6 +60,10 @@ class TrainConfig:
     renders are wrong (textures, edges, a face); 0 draws uniformly (the paper)."""
     error_cell_px: int = 16
     """Edge in pixels of the error map's cells."""
+    color_shapes_geometry: bool = True
+    """Whether the colour loss reaches the compositing weights, and so the geometry (VolSDF, the
+    paper). False composites the colour on weights held fixed for that loss: the surface is then
+    shaped by the masks, the priors and the regularizers, and colour only paints it (issue 36)."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2
@@ -202,6 +206,15 @@ def _tiny_avatar() -> AvatarConfig:
         nonrigid_width=16, nonrigid_layers=2,
         deformer=DeformerConfig(init_top_k=2),
     )
+
+
+def color_grid_config(sdf_grid: HashGridConfig) -> HashGridConfig:
+    """The colour field's own hash grid for an SDF grid: its table size and coarsest level, at most 8
+    levels up to 512 cells (a few mm on a body). Measured on the cpu preset: +7 % step time, against
+    +12 % for a copy of the SDF's 12 levels up to 1024 (tests/benchmarks/results/color-decoupling.md)."""
+    levels = min(8, sdf_grid.n_levels)
+    finest = max(sdf_grid.base_resolution, min(512, sdf_grid.finest_resolution))
+    return dataclasses.replace(sdf_grid, n_levels=levels, finest_resolution=finest)
 
 
 def preset(name: str) -> TrainConfig:

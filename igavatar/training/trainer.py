@@ -311,7 +311,8 @@ class Trainer:
         out = render_rays(canonical_samples, field_fn, background)
         if self.error_map is not None:
             self.error_map.record(index, pixels, (out.rgb.detach() - target).abs().mean(dim=-1))
-        terms = {"rgb": rgb_loss(out.rgb, target), "alpha": alpha_loss(out.opacity, target_mask)}
+        rendered = out.rgb if config.color_shapes_geometry else out.rgb_on_fixed_weights(background)
+        terms = {"rgb": rgb_loss(rendered, target), "alpha": alpha_loss(out.opacity, target_mask)}
         terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
             terms["free_space"] = self._free_space_term()
