@@ -249,7 +249,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
 
 @app.command()
 @user_errors
-@help_panels({INPUTS: ("dataset", "out", "run_dir", "resume", "force"), QUALITY: ("preset", "steps", "rays", "samples", "seed", "device"),
+@help_panels({INPUTS: ("dataset", "out", "run_dir", "resume", "force"), QUALITY: ("preset", "steps", "rays", "samples", "seed", "device", "decoupled_color"),
               "Poses from a video": ("refine_poses", "pose_lr", "pose_prior_weight"),
               "Watch it in a browser": ("view", "view_host", "view_port", "view_mesh_every", "view_mesh_resolution"),
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
@@ -312,6 +312,11 @@ def train(
         Optional[str], typer.Option(help="Adam on the hash table: sparse (entries no sample reached stay put, as tiny-cuda-nn) or dense (torch's Adam: they drift on their momentum; the ablation) \\[default: sparse].")
     ] = None,
     table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
+    decoupled_color: Annotated[bool, typer.Option(
+        help="Keep colour off the geometry, so bold stripes and checks are not carved into the surface: the colour "
+             "network gets a hash grid of its own and neither its inputs nor the rendering weights pass the colour "
+             "loss on to the shape (the four --color-* options below, which override it one by one). On the bold "
+             "synthetic subject: CD-L1 5.4 -> 3.6 mm, NC 0.90 -> 0.96, sharper renders, +7 % time a step.")] = False,
     color_normal_gradient: Annotated[Optional[bool], typer.Option(
         "--color-normal-gradient/--no-color-normal-gradient",
         help="Let the colour loss move the surface through the colour network's normal input (the paper's code); "
@@ -350,6 +355,7 @@ def train(
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient, color_grid=color_grid,
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
+        decoupled_color=decoupled_color,
         error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )

@@ -95,6 +95,9 @@ class TrainOptions:
     color_normal_gradient: bool | None = None
     #: False: the SDF's features reach the colour network detached; None: the preset's.
     color_feature_gradient: bool | None = None
+    #: True: colour kept off the geometry (a colour grid, the SDF features and normal detached, colour
+    #: on fixed weights); the four finer options below override it one by one.
+    decoupled_color: bool = False
     #: False: the colour loss does not reach the compositing weights (the geometry); None: the preset's.
     color_shapes_geometry: bool | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (none).
@@ -126,21 +129,10 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 0 <= options.body_inside_max_spill <= 1:
             raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: expected a share of views in [0, 1] (1: no check)")
         config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
-    if options.color_normal_gradient is not None:
-        color = dataclasses.replace(config.avatar.color, normal_gradient=options.color_normal_gradient)
-        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
     if options.error_sampling is not None:
         if not 0.0 <= options.error_sampling <= 1.0:
             raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
         config = dataclasses.replace(config, error_sampling=options.error_sampling)
-    if options.color_shapes_geometry is not None:
-        config = dataclasses.replace(config, color_shapes_geometry=options.color_shapes_geometry)
-    color = config.avatar.color
-    if options.color_grid is not None:
-        color = dataclasses.replace(color, hash_grid=color_grid_config(config.avatar.sdf.hash_grid) if options.color_grid else None)
-    if options.color_feature_gradient is not None:
-        color = dataclasses.replace(color, feature_gradient=options.color_feature_gradient)
-    config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:
             raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")
@@ -150,7 +142,27 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:
             raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
-    return config
+    return _color_options(config, options)
+
+
+def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
+    """--decoupled-color, then the finer colour options, over the preset's."""
+    def given(value: bool | None, decoupled: bool) -> bool | None:
+        return value if value is not None else (decoupled if options.decoupled_color else None)
+
+    shapes = given(options.color_shapes_geometry, False)
+    if shapes is not None:
+        config = dataclasses.replace(config, color_shapes_geometry=shapes)
+    color = config.avatar.color
+    grid, features, normal = (given(options.color_grid, True), given(options.color_feature_gradient, False),
+                              given(options.color_normal_gradient, False))
+    if grid is not None:
+        color = dataclasses.replace(color, hash_grid=color_grid_config(config.avatar.sdf.hash_grid) if grid else None)
+    if features is not None:
+        color = dataclasses.replace(color, feature_gradient=features)
+    if normal is not None:
+        color = dataclasses.replace(color, normal_gradient=normal)
+    return dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
 
 
 def _pose_refiner(config: TrainConfig, dataset: DatasetArtifact, data) -> PoseRefiner | None:

@@ -78,3 +78,17 @@ def test_a_decoupled_model_trains_with_the_colour_table_in_the_sparse_optimizer(
     # The config (an optional nested dataclass) survives the manifest's JSON.
     again = config_from_json(dataclasses.asdict(trainer.config))
     assert again.avatar.color.hash_grid == grid
+
+
+def test_decoupled_color_sets_the_four_options_and_each_can_be_overridden(tmp_path):
+    from stages.train import TrainOptions, resolve_config
+
+    def resolved(**options):
+        config = resolve_config(TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset="cpu", **options))
+        color = config.avatar.color
+        return color.hash_grid is not None, color.feature_gradient, color.normal_gradient, config.color_shapes_geometry
+
+    assert resolved() == (False, True, True, True)  # the paper's coupling
+    assert resolved(decoupled_color=True) == (True, False, False, False)
+    assert resolved(decoupled_color=True, color_normal_gradient=True) == (True, False, True, False)
+    assert resolved(color_shapes_geometry=False) == (False, True, True, False)

@@ -211,7 +211,7 @@ def _tiny_avatar() -> AvatarConfig:
 def color_grid_config(sdf_grid: HashGridConfig) -> HashGridConfig:
     """The colour field's own hash grid for an SDF grid: its table size and coarsest level, at most 8
     levels up to 512 cells (a few mm on a body). Measured on the cpu preset: +7 % step time, against
-    +12 % for a copy of the SDF's 12 levels up to 1024 (tests/benchmarks/results/color-decoupling.md)."""
+    +12 % for a copy of the SDF's 12 levels up to 1024 (tests/benchmarks/results/color-step.md)."""
     levels = min(8, sdf_grid.n_levels)
     finest = max(sdf_grid.base_resolution, min(512, sdf_grid.finest_resolution))
     return dataclasses.replace(sdf_grid, n_levels=levels, finest_resolution=finest)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import statistics
 import subprocess
 import sys
@@ -105,7 +106,7 @@ def main() -> None:
     parser.add_argument("--reuse", action="store_true")
     args = parser.parse_args()
     args.variant_flags = dict(v.split("=", 1) for v in args.variant)
-    command = "python tests/benchmarks/bench_variants.py " + " ".join(sys.argv[1:])
+    command = "python tests/benchmarks/bench_variants.py " + shlex.join(sys.argv[1:])
     rows = []
     for seed in [int(s) for s in args.seeds.split(",")]:
         for name, flags in args.variant_flags.items():

@@ -1,0 +1,89 @@
+"""Step time of the colour options side by side: the paper's coupling against the decoupled colour.
+
+    python tests/benchmarks/bench_color_step.py --dataset RUN/dataset [--rounds 5] [--steps 15]
+
+One process builds a trainer per variant on the dataset (the `cpu` preset, no shape initialisation,
+started at step 400 so the non-rigid offset is on), warms each up for 5 steps, then times
+`--steps` steps of each in turn for `--rounds` rounds (round-robin, so the machine's noise falls
+on all of them alike) and reports the median ms per step and its ratio to the paper's coupling.
+Variants: `paper` (the preset), `decoupled` (colour grid of config.color_grid_config, SDF features
+and normal detached, colour on fixed weights), `decoupled-grid12` (the same with a copy of the
+SDF's grid). Writes results/color-step.md and .json with the commit and the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shlex
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
+from provenance import commit  # noqa: E402
+
+from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+from igavatar.avatar.model import build_avatar  # noqa: E402
+from igavatar.training.config import TrainConfig, color_grid_config, preset  # noqa: E402
+from igavatar.training.trainer import Trainer  # noqa: E402
+
+RESULTS = ROOT / "tests" / "benchmarks" / "results"
+
+
+def decoupled(base: TrainConfig, grid) -> TrainConfig:
+    color = dataclasses.replace(base.avatar.color, hash_grid=grid, feature_gradient=False, normal_gradient=False)
+    return dataclasses.replace(base, color_shapes_geometry=False, avatar=dataclasses.replace(base.avatar, color=color))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--dataset", type=Path, required=True)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=15)
+    args = parser.parse_args()
+    dataset = read_dataset(args.dataset)
+    data = training_data(dataset)
+    base = dataclasses.replace(preset("cpu"), steps=800, shape_init_steps=0)
+    sdf_grid = base.avatar.sdf.hash_grid
+    variants = {"paper": base, "decoupled": decoupled(base, color_grid_config(sdf_grid)),
+                "decoupled-grid12": decoupled(base, sdf_grid)}
+    trainers = {}
+    for name, config in variants.items():
+        torch.manual_seed(0)
+        trainer = Trainer(config, data, build_avatar(config, dataset.subject, dataset.data["pose_dim"]))
+        trainer.step = 400
+        for _ in range(5):
+            trainer.train_step()
+        trainers[name] = trainer
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(args.rounds):
+        for name, trainer in trainers.items():
+            tick = time.perf_counter()
+            for _ in range(args.steps):
+                trainer.train_step()
+            times[name].append(1000 * (time.perf_counter() - tick) / args.steps)
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    command = "python tests/benchmarks/bench_color_step.py " + shlex.join(sys.argv[1:])
+    lines = ["# Step time of the colour options, side by side", "", f"Commit: `{commit()}`. Command:", "", f"    {command}", "",
+             f"Dataset `{args.dataset}`; `cpu` preset from step 400, {args.rounds} rounds of {args.steps} steps, "
+             f"round-robin, {torch.get_num_threads()} threads.", "",
+             "| variant | median ms/step | vs paper | rounds (ms/step) |", "|---|---|---|---|"]
+    for name, values in times.items():
+        lines.append(f"| {name} | {medians[name]:.1f} | {medians[name] / medians['paper'] - 1:+.1%} | "
+                     + ", ".join(f"{v:.1f}" for v in values) + " |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    (RESULTS / "color-step.md").write_text(text)
+    (RESULTS / "color-step.json").write_text(json.dumps({"commit": commit(), "command": command, "ms_per_step": times},
+                                                        indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
