@@ -313,10 +313,11 @@ def train(
     ] = None,
     table_lr_factor: Annotated[Optional[float], typer.Option(help="Learning rate of the hash table relative to the preset's lr \\[default: the preset's: cpu 2, paper 1].")] = None,
     decoupled_color: Annotated[bool, typer.Option(
-        help="Keep colour off the geometry, so bold stripes and checks are not carved into the surface: the colour "
-             "network gets a hash grid of its own and neither its inputs nor the rendering weights pass the colour "
-             "loss on to the shape (the four --color-* options below, which override it one by one). On the bold "
-             "synthetic subject: CD-L1 5.4 -> 3.6 mm, NC 0.90 -> 0.96, sharper renders, +7 % time a step.")] = False,
+        help="Keep colour off the geometry, for clothes with bold stripes or checks that otherwise get carved into "
+             "the surface: the colour network gets a hash grid of its own and neither its inputs nor the rendering "
+             "weights pass the colour loss on to the shape (the four --color-* options below override it one by "
+             "one). Bold stripes: CD-L1 5.4 -> 3.6 mm, NC 0.90 -> 0.96, sharper renders; plain or loose clothes lose "
+             "the images' help with the shape (CD-L1 5.0 -> 5.8 mm on the demo); +7 % time a step.")] = False,
     color_normal_gradient: Annotated[Optional[bool], typer.Option(
         "--color-normal-gradient/--no-color-normal-gradient",
         help="Let the colour loss move the surface through the colour network's normal input (the paper's code); "
