@@ -7,8 +7,8 @@ started at step 400 so the non-rigid offset is on), warms each up for 5 steps, t
 `--steps` steps of each in turn for `--rounds` rounds (round-robin, so the machine's noise falls
 on all of them alike) and reports the median ms per step and its ratio to the paper's coupling.
 Variants: `paper` (the preset), `decoupled` (colour grid of config.color_grid_config, SDF features
-and normal detached, colour on fixed weights), `decoupled-grid12` (the same with a copy of the
-SDF's grid). Writes results/color-step.md and .json with the commit and the command.
+and normal detached, colour on fixed weights), `grid-detached` (the same with the weights coupled),
+`decoupled-grid12` (decoupled with a copy of the SDF's grid). Writes results/color-step.md and .json with the commit and the command.
 """
 
 from __future__ import annotations
@@ -37,9 +37,10 @@ from igavatar.training.trainer import Trainer  # noqa: E402
 RESULTS = ROOT / "tests" / "benchmarks" / "results"
 
 
-def decoupled(base: TrainConfig, grid) -> TrainConfig:
+def decoupled(base: TrainConfig, grid, fixed_weights: bool = True) -> TrainConfig:
     color = dataclasses.replace(base.avatar.color, hash_grid=grid, feature_gradient=False, normal_gradient=False)
-    return dataclasses.replace(base, color_shapes_geometry=False, avatar=dataclasses.replace(base.avatar, color=color))
+    return dataclasses.replace(base, color_shapes_geometry=not fixed_weights,
+                               avatar=dataclasses.replace(base.avatar, color=color))
 
 
 def main() -> None:
@@ -53,6 +54,7 @@ def main() -> None:
     base = dataclasses.replace(preset("cpu"), steps=800, shape_init_steps=0)
     sdf_grid = base.avatar.sdf.hash_grid
     variants = {"paper": base, "decoupled": decoupled(base, color_grid_config(sdf_grid)),
+                "grid-detached": decoupled(base, color_grid_config(sdf_grid), fixed_weights=False),
                 "decoupled-grid12": decoupled(base, sdf_grid)}
     trainers = {}
     for name, config in variants.items():
