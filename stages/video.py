@@ -34,7 +34,7 @@ from igavatar.artifacts.png import write_png
 from igavatar.body.anny_body import AnnyBody, load_anny
 from igavatar.body.skeleton import forward_kinematics
 from igavatar.capture.contact_sheet import contact_sheet
-from igavatar.capture.person_landmarks import LANDMARKS, PersonTracks, person_mask, track_person
+from igavatar.capture.person_landmarks import LANDMARKS, PersonTracks, track_person
 from igavatar.capture.video_checks import check_detections, check_in_frame, check_one_person, check_still_camera
 from igavatar.capture.video_fit import (DEFAULT_HEIGHT_M, FREE_BONES, VideoCamera, anny_body_of_height, consistent_facing,
                                         fit_anny_to_tracks, relabelled)
@@ -45,6 +45,7 @@ from stages.common import StageClock, unchanged
 from stages.video_estimate import Estimate, estimate_meta, keep_estimated, place_estimate, read_estimate, write_estimate_capture
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_ram_bytes
+from stages.video_frames_io import keep_frames, write_frames
 
 #: Fewer training frames than this cannot shape an avatar (the visual hull needs 8 views too).
 MIN_TRAIN_FRAMES = 8
@@ -109,18 +110,6 @@ def _splits(names: list[str], test_every: int) -> dict[str, list[str]]:
     test = [n for i, n in enumerate(names) if test_every and (i + 1) % test_every == 0]
     held = set(test)
     return {"train": [n for n in names if n not in held], "test": test}
-
-
-def _keep_detected(frames: VideoFrames, tracks: PersonTracks) -> tuple[VideoFrames, PersonTracks]:
-    """Drop frames without a person (recorded in frames.dropped['no_person'])."""
-    keep = np.flatnonzero(tracks.detected)
-    if len(keep) < len(tracks.detected):
-        frames.dropped["no_person"] = [frames.source_indices[i] for i in np.flatnonzero(~tracks.detected)]
-        frames.images = [frames.images[i] for i in keep]
-        frames.source_indices = [frames.source_indices[i] for i in keep]
-    tracks = PersonTracks(tracks.detected[keep], tracks.masks[keep], tracks.people[keep], tracks.image_xy[keep],
-                          tracks.visibility[keep], tracks.world_xyz[keep])
-    return frames, tracks
 
 
 def _main_skeleton(body: AnnyBody) -> tuple[np.ndarray, np.ndarray]:
@@ -209,12 +198,7 @@ def _meta(options: VideoOptions, frames: VideoFrames, body: AnnyBody, camera: Vi
 
 def _write_capture(tmp: Path, frames: VideoFrames, tracks: PersonTracks, body: AnnyBody, camera: VideoCamera, fit,
                    meta: dict) -> None:
-    for sub in ("images", "masks"):
-        (tmp / sub).mkdir()
-    for name, image, probability in zip(frames.names, frames.images, tracks.masks):
-        write_png(tmp / "images" / f"{name}.png", image)
-        write_png(tmp / "masks" / f"{name}.png", person_mask(probability))
-    np.savez(tmp / "cameras.npz", K=camera.K, w2c=camera.w2c, height=np.int64(camera.height), width=np.int64(camera.width))
+    write_frames(tmp, frames, tracks, camera)
     pose_parameters = body.pose_parameters_from_local_rotations(torch.as_tensor(fit.local_rotations),
                                                                 torch.as_tensor(fit.root_translation))
     np.savez(tmp / "poses.npz", pose_parameters=pose_parameters.numpy(),
@@ -245,7 +229,7 @@ def run_video_capture(options: VideoOptions, progress: ProgressSink = NULL_PROGR
     with clock("track_s"), progress.task("finding the person", total=len(frames.images)) as advance:
         tracks = track_person(frames.images, on_frame=lambda _: advance(1))
     check_detections(video, tracks, MIN_TRAIN_FRAMES + (1 if options.test_every else 0))
-    frames, tracks = _keep_detected(frames, tracks)
+    frames, tracks = keep_frames(frames, tracks, tracks.detected, "no_person")
     if estimate is not None:
         frames, tracks = keep_estimated(frames, tracks, estimate.poses)
     if len(_splits(frames.names, options.test_every)["train"]) < MIN_TRAIN_FRAMES:

@@ -1,9 +1,9 @@
 """`preprocess --video CLIP --poses-from FILE`: the clip's frames and masks with a GPU estimator's SMPL poses.
 
-    estimate = read_estimate(options)                                # before the clip is read: errors first
+    estimate = read_estimate(poses_from, smpl_model)                  # before the clip is read: errors first
     frames, tracks = keep_estimated(frames, tracks, estimate.poses)  # frames the estimate covers
-    imported = place_estimate(estimate, frames, tracks, options)     # camera, world poses, body-mask agreement
-    write_estimate_capture(tmp, frames, tracks, imported, meta)
+    placed = place_estimate(estimate, frames, tracks, focal_px, fov_deg)   # camera, world poses, body-mask IoU
+    write_estimate_capture(tmp, frames, tracks, estimate, placed, meta)
 
 The estimate (igavatar.capture.estimator_poses) is in the camera frame of the source video. The
 capture's world is that camera frame turned to SMPL's +Y up (x right, y up, the camera looking
@@ -34,6 +34,7 @@ from igavatar.capture.video_fit import VideoCamera
 from igavatar.capture.video_frames import VideoFrames
 from igavatar.errors import InputError
 from igavatar.geometry.projection import filled_silhouette, project_points
+from stages.video_frames_io import keep_frames, write_frames
 
 #: Camera frame (OpenCV) -> the capture's +Y-up world, and back (its own inverse).
 CAMERA_TO_WORLD = np.diag([1.0, -1.0, -1.0])
@@ -84,14 +85,7 @@ def keep_estimated(frames: VideoFrames, tracks: PersonTracks, poses: EstimatorPo
         raise InputError(
             f"{poses.path}: covers source frames {poses.source_frames.min()}-{poses.source_frames.max()}, none of the "
             f"{len(frames.source_indices)} frames kept from the clip; is it this clip's estimate?")
-    if not covered.all():
-        frames.dropped["no_estimate"] = [frames.source_indices[i] for i in np.flatnonzero(~covered)]
-        keep = np.flatnonzero(covered)
-        frames.images = [frames.images[i] for i in keep]
-        frames.source_indices = [frames.source_indices[i] for i in keep]
-        tracks = PersonTracks(tracks.detected[keep], tracks.masks[keep], tracks.people[keep], tracks.image_xy[keep],
-                              tracks.visibility[keep], tracks.world_xyz[keep])
-    return frames, tracks
+    return keep_frames(frames, tracks, covered, "no_estimate")
 
 
 def estimate_camera(poses: EstimatorPoses, frames: VideoFrames, focal_px: float | None,
@@ -172,13 +166,7 @@ def estimate_meta(estimate: Estimate, placed: PlacedEstimate) -> dict:
 def write_estimate_capture(tmp: Path, frames: VideoFrames, tracks: PersonTracks, estimate: Estimate,
                            placed: PlacedEstimate, meta: dict) -> None:
     """images/, masks/, cameras.npz, poses.npz (SMPL), contact_sheet.png and capture.json into `tmp`."""
-    for sub in ("images", "masks"):
-        (tmp / sub).mkdir()
-    for name, image, probability in zip(frames.names, frames.images, tracks.masks):
-        write_png(tmp / "images" / f"{name}.png", image)
-        write_png(tmp / "masks" / f"{name}.png", person_mask(probability))
-    camera = placed.camera
-    np.savez(tmp / "cameras.npz", K=camera.K, w2c=camera.w2c, height=np.int64(camera.height), width=np.int64(camera.width))
+    write_frames(tmp, frames, tracks, placed.camera)
     np.savez(tmp / "poses.npz", betas=estimate.poses.betas, global_orient=placed.global_orient,
              body_pose=placed.body_pose, transl=placed.transl)
     write_png(tmp / "contact_sheet.png", _sheet(frames, estimate, placed))
