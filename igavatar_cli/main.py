@@ -115,8 +115,8 @@ app.command()(output_commands.animate)
 app.command(name="eval")(output_commands.eval_)
 app.command()(demo)
 app.command()(validate)
-batch_command.register(app, user_errors, err_console, print_summary)
-view_command.register(app, user_errors, err_console, print_summary, DEFAULT_RUN_DIR)
+app.command()(batch_command.batch)
+app.command()(view_command.view)
 
 
 if __name__ == "__main__":
