@@ -73,7 +73,8 @@ def export(
 ) -> None:
     """Extract the canonical mesh (PLY/OBJ/rigged GLB) and, with --pose, posed meshes in world coordinates."""
     from igavatar_cli.progress import progress_sink
-    from stages.export import ExportOptions, parse_formats, run_export
+    from stages.export import ExportOptions, run_export
+    from stages.export_options import parse_formats
 
     layout = RunLayout(run_dir)
     options = ExportOptions(
