@@ -2,6 +2,8 @@
 
     summary = run_train(TrainOptions(dataset=Path("run/dataset"), out=Path("run/model"), preset="cpu"))
 
+TrainOptions and the TrainConfig they resolve to are stages.train_options.
+
 Model layout (schema `model`, version 1):
     weights.npz          avatar parameters and buffers, canonical occupancy grid (no pickle)
     subject.npz          skeleton, skinning grid and boxes (copied from the dataset)
@@ -19,7 +21,6 @@ import dataclasses
 import json
 import shutil
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -39,7 +40,7 @@ from igavatar.interrupts import deferred_interrupts, raise_if_interrupted
 from igavatar.metrics.image import psnr as image_psnr
 from igavatar.model.avatar import Avatar
 from igavatar.training.checkpoint import save_state
-from igavatar.training.config import TrainConfig, color_grid_config, preset, with_overrides
+from igavatar.training.config import TrainConfig
 from igavatar.training.run_state import TrainingLog, cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
 from igavatar.training.trainer import Trainer
@@ -48,121 +49,16 @@ from stages.kernels import build_kernels, resolve_device
 from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
+from stages.train_options import TrainOptions, resolve_config
 
 if TYPE_CHECKING:  # viser is imported only for --view
-    from stages.train_view import TrainingMonitor, ViewSettings
+    from stages.train_view import TrainingMonitor
 
 
 class TrainingInterrupted(IgavatarError):
     """Ctrl-C during training: a checkpoint was written; `--resume` continues from it."""
 
     exit_code = 130
-
-
-@dataclass(frozen=True)
-class TrainOptions:
-    """Options of `igavatar train` (see the CLI for each one's help)."""
-
-    dataset: Path
-    out: Path
-    preset: str = "cpu"
-    steps: int | None = None
-    rays_per_step: int | None = None
-    samples_per_ray: int | None = None
-    regularizer: str | None = None
-    sdf_encoding: str | None = None
-    smooth_weight: float | None = None
-    smooth_pairs: str | None = None
-    smooth_form: str | None = None
-    beta_init: float | None = None
-    beta_final: float | None = None
-    free_space_weight: float | None = None
-    body_inside_weight: float | None = None
-    smooth_band: float | None = None
-    body_inside_max_spill: float | None = None
-    table_adam: str | None = None
-    table_lr_factor: float | None = None
-    seed: int = 0
-    device: str = "auto"
-    resume: bool = False
-    #: Train even when `out` holds a model of this dataset and these options (else: skipped).
-    force: bool = False
-    #: None: the preset's (off: measured, it does not yet pay for its time; docs/DESIGN.md "Video in").
-    refine_poses: bool | None = None
-    pose_lr: float | None = None
-    pose_prior_weight: float | None = None
-    #: None: the preset's (the colour loss reaches the geometry through the normal, as the paper's code).
-    color_normal_gradient: bool | None = None
-    #: False: the SDF's features reach the colour network detached; None: the preset's.
-    color_feature_gradient: bool | None = None
-    #: True: colour kept off the geometry (a colour grid, the SDF features and normal detached, colour
-    #: on fixed weights); the four finer options below override it one by one.
-    decoupled_color: bool = False
-    #: False: the colour loss does not reach the compositing weights (the geometry); None: the preset's.
-    color_shapes_geometry: bool | None = None
-    #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (none).
-    color_grid: bool | None = None
-    #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
-    error_sampling: float | None = None
-    #: A browser page that follows the run (stages.train_view); None: no page.
-    view: ViewSettings | None = None
-
-
-def resolve_config(options: TrainOptions) -> TrainConfig:
-    """The preset with the CLI's overrides applied."""
-    config = with_overrides(
-        preset(options.preset), steps=options.steps, rays_per_step=options.rays_per_step,
-        samples_per_ray=options.samples_per_ray, regularizer=options.regularizer, seed=options.seed,
-        sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form, smooth_band=options.smooth_band,
-        table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
-        refine_poses=options.refine_poses, pose_lr=options.pose_lr, pose_prior_weight=options.pose_prior_weight,
-    )
-    weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight),
-                                               ("body_inside", options.body_inside_weight))
-               if value is not None}
-    for name, value in weights.items():
-        if value < 0:
-            raise InputError(f"--{name.replace('_', '-')}-weight {value}: must be >= 0")
-    if weights:
-        config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
-    if options.body_inside_max_spill is not None:
-        if not 0 <= options.body_inside_max_spill <= 1:
-            raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: expected a share of views in [0, 1] (1: no check)")
-        config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
-    if options.error_sampling is not None:
-        if not 0.0 <= options.error_sampling <= 1.0:
-            raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
-        config = dataclasses.replace(config, error_sampling=options.error_sampling)
-    if options.beta_init is not None:
-        if not 1e-4 <= options.beta_init <= 1.0:
-            raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")
-        density = dataclasses.replace(config.avatar.density, beta_init=options.beta_init)
-        config = dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, density=density))
-    if options.beta_final is not None:
-        if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:
-            raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
-        config = dataclasses.replace(config, beta_final=options.beta_final)
-    return _color_options(config, options)
-
-
-def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
-    """--decoupled-color, then the finer colour options, over the preset's."""
-    def given(value: bool | None, decoupled: bool) -> bool | None:
-        return value if value is not None else (decoupled if options.decoupled_color else None)
-
-    shapes = given(options.color_shapes_geometry, False)
-    if shapes is not None:
-        config = dataclasses.replace(config, color_shapes_geometry=shapes)
-    color = config.avatar.color
-    grid, features, normal = (given(options.color_grid, True), given(options.color_feature_gradient, False),
-                              given(options.color_normal_gradient, False))
-    if grid is not None:
-        color = dataclasses.replace(color, hash_grid=color_grid_config(config.avatar.sdf.hash_grid) if grid else None)
-    if features is not None:
-        color = dataclasses.replace(color, feature_gradient=features)
-    if normal is not None:
-        color = dataclasses.replace(color, normal_gradient=normal)
-    return dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
 
 
 def _pose_refiner(config: TrainConfig, dataset: DatasetArtifact, data) -> PoseRefiner | None:
