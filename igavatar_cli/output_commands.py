@@ -8,6 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from igavatar.errors import InputError
 from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, err_console, print_summary, user_errors
 from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout

@@ -3,6 +3,9 @@
     summary = run_eval(EvalOptions(model=Path("igavatar-run/model"), out=Path("igavatar-run/report")))
     document = json.loads((Path(summary["report"]) / "metrics.json").read_text())
 
+The options and what they resolve to are stages.eval_options; one frame's record, the report
+document and the console summary are stages.eval_records.
+
 Report layout (schema `report`, version 1):
     metrics.json              every metric per test frame and its mean, each with protocol, units,
                               coordinate frame and background (EVAL.md); the manifest's `data` is the
@@ -32,7 +35,6 @@ import dataclasses
 import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,102 +48,38 @@ from igavatar.artifacts.manifest import InputRecord, build_manifest, validate_ag
 from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.png import write_png
 from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
-from igavatar.avatar.model import ModelArtifact, ModelManifest, load_model, read_model_manifest
+from igavatar.avatar.model import ModelArtifact, load_model, read_model_manifest
 from igavatar.avatar.surfaces import canonical_surface
 from igavatar.capture.images import scale_intrinsics
-from igavatar.capture.scans import ScanMatching, default_gt_dir, load_scan, match_scans
+from igavatar.capture.scans import ScanMatching, default_gt_dir, match_scans
 from igavatar.errors import InputError
 from igavatar.mesh.cleanup import clean_mesh, is_watertight
-from igavatar.metrics.frame_geometry import frame_geometry
-from igavatar.metrics.image import evaluate_image, side_by_side
 from igavatar.metrics.lpips_scorer import lpips_scorer
-from igavatar.metrics.report import (
-    METRIC_KEYS,
-    METRICS,
-    error_colors,
-    error_mesh_panel,
-    markdown_report,
-    mean_over_frames,
-    metric_curves_image,
-)
-from igavatar.model.avatar import SURFACE_LEVELS
+from igavatar.metrics.report import METRIC_KEYS, error_colors, markdown_report, metric_curves_image
 from igavatar.model.render_avatar import render_posed_view
 from igavatar.avatar.canonical_report import canonical_section
 from stages.common import StageClock, skipped, unchanged
-from stages.eval_poses import refined_posed, refinement_notes
+from stages.eval_options import (
+    EvalOptions,
+    ImageSettings,
+    check_options,
+    image_frame_indices,
+    render_size,
+    resolve_dataset,
+    resolve_image_settings,
+)
+from stages.eval_poses import refined_posed
+from stages.eval_records import (
+    ERROR_PANEL_MAX_SIDE,
+    ERROR_VMAX_MM,
+    frame_geometry_record,
+    frame_image_record,
+    report_document,
+    summary_of_metrics,
+)
 from stages.kernels import build_kernels, resolve_device
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import peak_cuda_bytes, peak_ram_bytes, require_marching_memory
-
-#: Distance (mm) shown fully red in the error-colored mesh panels.
-ERROR_VMAX_MM = 20.0
-#: Longest side (pixels) of the error-colored mesh panels.
-ERROR_PANEL_MAX_SIDE = 512
-#: Mean absolute RGB error shown fully red in the image panels.
-IMAGE_ERROR_VMAX = 0.25
-#: Smallest rendered side: SSIM needs an 11 x 11 window.
-MIN_IMAGE_SIDE = 16
-
-
-@dataclass(frozen=True)
-class EvalOptions:
-    """Options of `igavatar eval` (see the CLI for each one's help)."""
-
-    model: Path
-    out: Path
-    gt: Path | None = None
-    dataset: Path | None = None
-    geometry: bool = True
-    images: bool = True
-    mesh_resolution: int = 256
-    surface_samples: int = 10_000
-    iou_points: int = 1_000_000
-    iou_open_meshes: bool = False
-    image_scale: float | None = None
-    samples_per_ray: int | None = None
-    image_frames: int | None = None
-    seed: int = 0
-    device: str = "auto"
-    surface_level: str = SURFACE_LEVELS[0]
-    """Where meshes are made: "silhouette" or "zero" (igavatar.model.avatar.SURFACE_LEVELS)."""
-    refine_test_poses: bool = False
-    """Refine each rendered test frame's pose against its image first (image metrics only)."""
-    refine_test_pose_steps: int = 80
-    force: bool = False
-    """Redo even if the report is up to date (same model, dataset, scans and options)."""
-
-    def config(self) -> dict:
-        """The options that change the numbers (recorded in the manifest)."""
-        return {
-            "geometry": self.geometry, "images": self.images, "mesh_resolution": self.mesh_resolution,
-            "surface_samples": self.surface_samples, "iou_points": self.iou_points,
-            "iou_open_meshes": self.iou_open_meshes, "image_scale": self.image_scale,
-            "samples_per_ray": self.samples_per_ray, "image_frames": self.image_frames, "seed": self.seed,
-            "device": self.device,
-            "test_time_pose_refinement": self.refine_test_poses,
-            **({"test_pose_steps": self.refine_test_pose_steps} if self.refine_test_poses else {}),
-            "surface_level": self.surface_level,
-        }
-
-
-# ----------------------------------------------------------------------------- inputs
-
-
-def resolve_dataset(model: ModelManifest, override: Path | None) -> Path:
-    """The dataset the model was trained on (manifest data.dataset), or --dataset."""
-    if override is not None:
-        if not Path(override).exists():
-            raise InputError(f"--dataset {override}: no such dataset directory")
-        return Path(override)
-    found = model.trained_dataset()
-    if found is None:
-        recorded = model.recorded_dataset
-        raise InputError(
-            f"{model.path}/manifest.json: data.dataset = {recorded} does not exist (nor {model.path.parent / recorded.name}); "
-            "pass the dataset the model was trained on with --dataset"
-        )
-    return found
-
 
 def _check_compatible(model: ModelArtifact, dataset: DatasetArtifact) -> None:
     for key, ours, theirs in (("joint_names", model.joint_names, dataset.recorded_joint_names), ("pose_dim", model.pose_dim, dataset.pose_dim)):
@@ -150,11 +88,6 @@ def _check_compatible(model: ModelArtifact, dataset: DatasetArtifact) -> None:
                 f"--dataset {dataset.path}: its {key} differs from the model's ({model.path}); "
                 "evaluate with the dataset the model was trained on"
             )
-
-
-def render_size(dataset_hw: tuple[int, int], scale: float) -> tuple[int, int]:
-    h, w = (max(MIN_IMAGE_SIDE, round(side * scale)) for side in dataset_hw)
-    return int(h), int(w)
 
 
 def _without_missing_scans(options: EvalOptions) -> tuple[EvalOptions, str | None]:
@@ -168,63 +101,6 @@ def _without_missing_scans(options: EvalOptions) -> tuple[EvalOptions, str | Non
     return (dataclasses.replace(options, geometry=False),
             f"{dataset.path}: the capture had no ground-truth scans, so geometry is not evaluated (pass --gt DIR "
             "to score it against scans of your own); images are")
-
-
-def _check_options(options: EvalOptions) -> None:
-    if not (options.geometry or options.images):
-        raise InputError("--no-geometry and --no-images together leave nothing to evaluate")
-    if options.mesh_resolution < 16:
-        raise InputError(f"--mesh-resolution {options.mesh_resolution}: expected >= 16")
-    if options.surface_samples < 1:
-        raise InputError(f"--surface-samples {options.surface_samples}: expected >= 1")
-    if options.iou_points < 0:
-        raise InputError(f"--iou-points {options.iou_points}: expected >= 0 (0 skips the IoU)")
-    if options.image_scale is not None and not 0 < options.image_scale <= 1:
-        raise InputError(f"--image-scale {options.image_scale}: expected a fraction in (0, 1]")
-    if options.samples_per_ray is not None and options.samples_per_ray < 1:
-        raise InputError(f"--samples {options.samples_per_ray}: expected >= 1")
-    if options.refine_test_poses and not options.images:
-        raise InputError("--refine-test-poses refines poses for the image metrics; it needs --images")
-    if options.refine_test_pose_steps < 1:
-        raise InputError(f"--refine-test-pose-steps {options.refine_test_pose_steps}: expected >= 1")
-    if options.image_frames is not None and options.image_frames < 0:
-        raise InputError(f"--image-frames {options.image_frames}: expected >= 0 (0 = every test frame)")
-    if options.surface_level not in SURFACE_LEVELS:
-        raise InputError(f"--surface-level {options.surface_level!r}: choose one of {', '.join(SURFACE_LEVELS)}")
-
-
-@dataclass(frozen=True)
-class ImageSettings:
-    """How test frames are rendered: resolved from the options and the device."""
-
-    scale: float
-    """Fraction of the dataset's image size."""
-    samples_per_ray: int
-    max_frames: int
-    """Frames rendered, evenly spaced over the test frames (0 = all)."""
-
-
-#: Defaults when an option is not given. Volume rendering with root finding costs ~20 s per
-#: 128 x 128 frame at 32 samples on two CPU cores, so on a CPU the demo's 30 test frames are
-#: rendered at a quarter of 512 px, and only 10 of them; a GPU renders every frame at full size.
-IMAGE_DEFAULTS = {"cpu": ImageSettings(0.25, 32, 10), "cuda": ImageSettings(1.0, 128, 0)}
-
-
-def resolve_image_settings(options: EvalOptions, device: torch.device) -> ImageSettings:
-    """The options' image settings, each missing one taken from IMAGE_DEFAULTS for the device."""
-    default = IMAGE_DEFAULTS["cuda" if device.type == "cuda" else "cpu"]
-    return ImageSettings(
-        scale=options.image_scale if options.image_scale is not None else default.scale,
-        samples_per_ray=options.samples_per_ray if options.samples_per_ray is not None else default.samples_per_ray,
-        max_frames=options.image_frames if options.image_frames is not None else default.max_frames,
-    )
-
-
-def image_frame_indices(n_frames: int, max_frames: int) -> set[int]:
-    """Indices of the frames to render: all, or `max_frames` evenly spaced (first and last included)."""
-    if max_frames <= 0 or max_frames >= n_frames:
-        return set(range(n_frames))
-    return {int(i) for i in np.linspace(0, n_frames - 1, max_frames).round()}
 
 
 @dataclass(frozen=True)
@@ -347,7 +223,7 @@ def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, ca
         tick = time.perf_counter()
         posed_v = posed.pose_vertices(canonical.vertices)
         record["seconds"]["posing"] = time.perf_counter() - tick
-        error_mm = _frame_geometry_record(
+        error_mm = frame_geometry_record(
             record, posed_v.astype(np.float64), canonical.faces, inputs.matching.matched[name], options,
             scale_intrinsics(test.K[i].astype(np.float64), plan.scale_xy(plan.panel_hw)),
             test.w2c[i].astype(np.float64), plan.panel_hw, tmp,
@@ -365,7 +241,7 @@ def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, ca
             torch.from_numpy(test.posed_boxes[i]).float().to(device),
             num_samples=plan.settings.samples_per_ray, occupancy_resolution=model.config.occupancy_resolution,
         )
-        _frame_image_record(record, render, inputs.dataset.image_on_white(name, size_hw), lpips_fn, tmp)
+        frame_image_record(record, render, inputs.dataset.image_on_white(name, size_hw), lpips_fn, tmp)
         record["seconds"]["render"] = time.perf_counter() - tick
     for key, value in record["values"].items():
         if value is not None and not math.isfinite(value):
@@ -408,7 +284,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     """
     clock = StageClock()
     options, skipped_geometry = _without_missing_scans(options)
-    _check_options(options)
+    check_options(options)
     if skipped_geometry:
         progress.status(skipped_geometry)
     inputs = _read_inputs(options, progress)
@@ -442,7 +318,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
         if options.images and len(plan.frames) < len(names):
             notes.append(f"images: {len(plan.frames)} of {len(names)} test frames rendered, evenly spaced (--image-frames "
                          f"{plan.settings.max_frames}; 0 renders all)")
-        document = _document(options, plan.settings, inputs.model_dir, inputs.dataset.path, inputs.gt_dir, names, records,
+        document = report_document(options, plan.settings, inputs.model_dir, inputs.dataset.path, inputs.gt_dir, names, records,
                              inputs.matching, canonical.record if canonical else None, notes, lpips_status, plan.size_hw,
                              plan.dataset_hw, str(device))
         _write_figures(tmp, document, records, names, worst, canonical)
@@ -460,120 +336,3 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     summary.update(summary_of_metrics(document, len(records)))
     summary["seconds"] = round(clock.elapsed(), 1)
     return summary
-
-
-def summary_of_metrics(document: dict, n_frames: int, keys: tuple[str, ...] = METRIC_KEYS) -> dict[str, Any]:
-    """Each metric's mean (or why there is none) for the console; a mean over only some of the
-    `n_frames` test frames adds `<key>_covers` saying how many."""
-    summary: dict[str, Any] = {}
-    for key in keys:
-        entry = document["metrics"][key]
-        summary[key] = round(entry["mean"], 4) if entry["mean"] is not None else entry["status"]
-        if 0 < entry["n_frames"] < n_frames:
-            summary[f"{key}_covers"] = f"{entry['n_frames']} of {n_frames} test frames (see the report's notes)"
-    return summary
-
-
-def _frame_geometry_record(
-    record: dict, posed_v: np.ndarray, faces: np.ndarray, scan_path: Path, options: EvalOptions,
-    K_panel: np.ndarray, w2c: np.ndarray, panel_hw: tuple[int, int], tmp: Path,
-) -> np.ndarray:
-    """Fill one frame's geometry values, details and notes, write its error panel; returns (V,) error in mm.
-
-    Args:
-        posed_v (V, 3): the posed prediction in world coordinates; faces (F, 3).
-        K_panel (3, 3), w2c (4, 4), panel_hw: the test camera at the panel's size.
-    """
-    tick = time.perf_counter()
-    name = record["frame"]
-    gt_v, gt_f = load_scan(scan_path)
-    values, details, notes, error_mm = frame_geometry(posed_v, faces, gt_v, gt_f, options)
-    record["scan"] = str(scan_path)
-    record["values"].update(values)
-    record["geometry"] = details
-    record["notes"] += notes
-    panel = error_mesh_panel(gt_v, gt_f, posed_v, faces, error_mm, K_panel, w2c, panel_hw[0], panel_hw[1], ERROR_VMAX_MM)
-    write_png(tmp / "geometry" / f"{name}.png", panel)
-    record["files"]["error_render"] = f"geometry/{name}.png"
-    record["seconds"]["geometry"] = time.perf_counter() - tick
-    return error_mm
-
-
-def _frame_image_record(
-    record: dict, render, ground_truth: tuple[np.ndarray, np.ndarray],
-    lpips_fn: Callable[[np.ndarray, np.ndarray], float] | None, tmp: Path,
-) -> None:
-    """Fill one frame's image values from its render (ImageRender) and write ground truth | render | error.
-
-    Args:
-        ground_truth: (RGB (h, w, 3) float on white, mask (h, w) bool) at the render's size.
-    """
-    name = record["frame"]
-    pred_rgb = render.rgb.clamp(0, 1).cpu().numpy().astype(np.float64)
-    gt_rgb, gt_mask = ground_truth
-    if gt_mask.any():
-        metrics = evaluate_image(pred_rgb, gt_rgb, gt_mask)
-        record["values"].update(
-            psnr_full_db=metrics.psnr_full_db, ssim_full=metrics.ssim_full,
-            psnr_mask_bbox_db=metrics.psnr_mask_bbox_db, ssim_mask_bbox=metrics.ssim_mask_bbox,
-        )
-    else:
-        record["notes"].append("the ground-truth mask is empty at the render's size: image metrics not computed")
-    if lpips_fn is not None:
-        record["values"]["lpips_full"] = lpips_fn(pred_rgb, gt_rgb)
-    record["image"] = {"height": int(pred_rgb.shape[0]), "width": int(pred_rgb.shape[1]),
-                       "mean_opacity": float(render.opacity.mean())}
-    write_png(tmp / "images" / f"{name}.png", side_by_side(gt_rgb, pred_rgb, IMAGE_ERROR_VMAX))
-    record["files"]["side_by_side"] = f"images/{name}.png"
-
-
-def _document(
-    options: EvalOptions, image_settings: ImageSettings, model_dir: Path, dataset_dir: Path, gt_dir: Path | None,
-    frame_names: list[str],
-    records: list[dict], matching: ScanMatching | None, prediction_mesh: dict | None, notes: list[str],
-    lpips_status: str, size_hw: tuple[int, int], dataset_hw: tuple[int, ...], device: str,
-) -> dict:
-    """The report document without its per-frame list (the manifest's data)."""
-    metrics = {}
-    for spec in METRICS:
-        mean, n = mean_over_frames([r["values"][spec.key] for r in records])
-        if spec.key == "lpips_full":
-            status = lpips_status
-        elif spec.kind == "geometry" and not options.geometry:
-            status = "not computed: --no-geometry"
-        elif spec.kind == "image" and not options.images:
-            status = "not computed: --no-images"
-        elif n == 0:
-            status = "not computed on any frame (see the per-frame notes)"
-        else:
-            status = f"mean over {n} of {len(records)} test frames"
-        metrics[spec.key] = {
-            "label": spec.label, "protocol": spec.protocol, "description": spec.description, "units": spec.units,
-            "frame": spec.frame, "background": spec.background, "better": spec.better, "mean": mean, "n_frames": n,
-            "status": status,
-        }
-    iou_states = [r["geometry"]["volumetric_iou"]["status"] for r in records if r["geometry"] is not None]
-    n_approximate = sum(s == "approximate" for s in iou_states)
-    if n_approximate:
-        notes = notes + [f"IoU is approximate on {n_approximate} frame(s) (see their notes)"]
-    notes = notes + [f"LPIPS {lpips_status}"] + refinement_notes(records)
-    return {
-        "inputs": {"model": str(model_dir), "dataset": str(dataset_dir), "gt": str(gt_dir) if gt_dir else None},
-        "frame_names": frame_names,
-        "settings": {
-            "geometry": options.geometry, "images": options.images, "mesh_resolution": options.mesh_resolution,
-            "surface_samples": options.surface_samples, "iou_points": options.iou_points,
-            "iou_open_meshes": options.iou_open_meshes, "seed": options.seed, "image_scale": image_settings.scale,
-            "image_size": list(size_hw), "dataset_image_size": list(dataset_hw),
-            "samples_per_ray": image_settings.samples_per_ray,
-            "image_frames": sum(r["image"] is not None for r in records), "background": "white",
-            "test_time_pose_refinement": options.refine_test_poses,
-            "error_vmax_mm": ERROR_VMAX_MM, "image_error_vmax": IMAGE_ERROR_VMAX, "bbox_pad": 0, "device": device,
-        },
-        "prediction_mesh": prediction_mesh,
-        "gt_matching": matching.to_json() if matching is not None else None,
-        "metrics": metrics,
-        "lpips": {"computed": lpips_status.startswith("computed"), "status": lpips_status},
-        "notes": notes,
-        "files": {"metrics": "metrics.json", "tables": "report.md"},
-    }

@@ -183,7 +183,7 @@ def test_jpeg_images_without_image_ext_get_a_hint(cli_runner, tmp_path):
 
 
 def test_a_partial_mean_says_how_many_frames_it_covers():
-    from stages.eval import summary_of_metrics
+    from stages.eval_records import summary_of_metrics
 
     document = {"metrics": {"volumetric_iou": {"mean": 0.9, "n_frames": 3, "status": "mean over 3 of 4 test frames"},
                             "psnr": {"mean": 20.0, "n_frames": 4, "status": "mean over 4 of 4 test frames"}}}

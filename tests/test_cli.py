@@ -39,6 +39,18 @@ def test_stages_without_their_input_artifact_say_which_and_fail(cli_runner, comm
     assert not any(p.name in ("model", "mesh", "animation", "report") for p in tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("args, message", [
+    (["animate", "walk", "--motion", "squat"], "disagree"),
+    (["preprocess", "--poses-from", "wham_output.pkl"], "needs --video"),
+])
+def test_contradicting_options_are_one_line_before_any_work(cli_runner, tmp_path, args, message):
+    """Checks the command functions make themselves (not a stage's): one line, exit 2, nothing written."""
+    result = cli_runner.invoke(app, [*args, "--run-dir", str(tmp_path / "run")])
+    assert result.exit_code == 2, result.output
+    assert message in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "run").exists()
+
+
 def test_validate_accepts_a_capture_and_reports_json(cli_runner, tiny_skeleton_capture):
     result = cli_runner.invoke(app, ["validate", str(tiny_skeleton_capture), "--json"])
     assert result.exit_code == 0, result.output

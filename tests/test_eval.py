@@ -30,7 +30,8 @@ from schemas import load_schema
 from igavatar.capture.scans import match_scans
 from igavatar.metrics.frame_geometry import frame_geometry, signed_volume, volume_check
 from igavatar.metrics.lpips_scorer import lpips_scorer
-from stages.eval import IMAGE_DEFAULTS, EvalOptions, image_frame_indices, resolve_image_settings, run_eval
+from stages.eval import EvalOptions, run_eval
+from stages.eval_options import IMAGE_DEFAULTS, image_frame_indices, resolve_image_settings
 
 FAST = dict(mesh_resolution=32, surface_samples=300, iou_points=20_000, image_scale=0.25, samples_per_ray=16, image_frames=0,
             device="cpu")

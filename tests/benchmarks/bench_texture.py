@@ -42,7 +42,7 @@ from igavatar.geometry.raycast import MeshRayCaster, interpolate_vertex_values  
 from igavatar.mesh.texture import sample_texture  # noqa: E402
 from igavatar.metrics.image import evaluate_image  # noqa: E402
 from igavatar.model.render_avatar import render_posed_view  # noqa: E402
-from stages.eval import image_frame_indices, render_size  # noqa: E402
+from stages.eval_options import image_frame_indices, render_size  # noqa: E402
 
 SOURCES = ("field", "images")
 METRICS = ("psnr_full_db", "ssim_full", "psnr_mask_bbox_db", "ssim_mask_bbox")
