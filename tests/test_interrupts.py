@@ -28,6 +28,16 @@ from igavatar_cli.main import app
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(autouse=True)
+def _python_ctrl_c_handler():
+    """Python installs its Ctrl-C handler only when SIGINT is not ignored at start-up, and a shell
+    starts a background job (`cmd &`) with SIGINT ignored: igavatar then rightly leaves Ctrl-C
+    ignored, and these tests, which send it, would see nothing. Each test runs as under a terminal."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def _digest(root: Path) -> dict[str, str]:
     return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(root.rglob("*")) if p.is_file()}
