@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from igavatar.errors import InputError
-from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, err_console, print_summary, user_errors
+from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, run_stage, user_errors
 from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
 
@@ -41,7 +41,6 @@ def synth(
     json_out: JsonOut = False,
 ) -> None:
     """Make a synthetic monocular capture (capture v1) of a clothed, textured Anny subject."""
-    from igavatar_cli.progress import progress_sink
     from stages.synth import SynthOptions, run_synth
 
     options = SynthOptions(
@@ -49,9 +48,7 @@ def synth(
         test_frames=test_frames, holdout_frames=holdout_frames, phenotype=tuple(phenotype or ()), garment=garment, texture=texture,
         seed=seed, skeleton=skeleton, anny_cache=anny_cache, force=force,
     )
-    with progress_sink(err_console, quiet=quiet or json_out) as progress:
-        summary = run_synth(options, progress=progress)
-    print_summary(summary, json_out)
+    run_stage(run_synth, options, quiet, json_out)
 
 
 @user_errors
@@ -125,7 +122,6 @@ def preprocess(
 ) -> None:
     """Turn a capture (images, masks, cameras, body poses), or a video of one person (--video), into a dataset
     artifact that `train` reads."""
-    from igavatar_cli.progress import progress_sink
     from stages.preprocess import PreprocessOptions, parse_grid_resolution, run_preprocess
     from stages.video import VideoOptions
 
@@ -142,6 +138,4 @@ def preprocess(
             height_m=height, focal_px=focal, fov_deg=fov, anny_cache=anny_cache, poses_from=poses_from,
             smpl_model=smpl_model, force=force),
     )
-    with progress_sink(err_console, quiet=quiet or json_out) as progress:
-        summary = run_preprocess(options, progress=progress)
-    print_summary(summary, json_out)
+    run_stage(run_preprocess, options, quiet, json_out)

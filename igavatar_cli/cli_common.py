@@ -71,3 +71,14 @@ def print_summary(summary: dict, as_json: bool) -> None:
         return
     for key, value in summary.items():
         out_console.print(f"[bold]{key}[/]: {value}", highlight=False, soft_wrap=True)
+
+
+def run_stage(stage: Callable[..., dict], options, quiet: bool, json_out: bool) -> dict:
+    """Run `stage(options, progress=...)` under the console's progress bars (none when --quiet or
+    --json) and print its summary; returns the summary."""
+    from igavatar_cli.progress import progress_sink
+
+    with progress_sink(err_console, quiet=quiet or json_out) as progress:
+        summary = stage(options, progress=progress)
+    print_summary(summary, json_out)
+    return summary

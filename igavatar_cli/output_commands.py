@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from igavatar.errors import InputError
-from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, err_console, print_summary, user_errors
+from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, run_stage, user_errors
 from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
 
@@ -73,7 +73,6 @@ def export(
     json_out: JsonOut = False,
 ) -> None:
     """Extract the canonical mesh (PLY/OBJ/rigged GLB) and, with --pose, posed meshes in world coordinates."""
-    from igavatar_cli.progress import progress_sink
     from stages.export import ExportOptions, run_export
     from stages.export_options import parse_formats
 
@@ -87,9 +86,7 @@ def export(
         posed_marching=posed_marching, exr=exr, exr_size=exr_size, device=device, anny_cache=anny_cache, force=force,
         surface_level=surface_level,
     )
-    with progress_sink(err_console, quiet=quiet or json_out) as progress:
-        summary = run_export(options, progress=progress)
-    print_summary(summary, json_out)
+    run_stage(run_export, options, quiet, json_out)
 
 
 @user_errors
@@ -131,7 +128,6 @@ def animate(
     json_out: JsonOut = False,
 ) -> None:
     """Render the avatar driven by a motion: PNG frames, an mp4, optionally posed meshes per frame and an animated GLB."""
-    from igavatar_cli.progress import progress_sink
     from stages.animate import AnimateOptions, run_animate
 
     if motion_arg is not None and motion is not None and motion_arg != motion:
@@ -144,9 +140,7 @@ def animate(
         mesh_resolution=mesh_resolution, surface_level=surface_level, glb=glb, influences=influences, device=device,
         anny_cache=anny_cache,
     )
-    with progress_sink(err_console, quiet=quiet or json_out) as progress:
-        summary = run_animate(options, progress=progress)
-    print_summary(summary, json_out)
+    run_stage(run_animate, options, quiet, json_out)
 
 
 @user_errors
@@ -196,7 +190,6 @@ def eval_(
     json_out: JsonOut = False,
 ) -> None:
     """Compare the posed avatar with ground-truth scans (Chamfer, normal consistency, IoU) and test images (PSNR, SSIM)."""
-    from igavatar_cli.progress import progress_sink
     from stages.eval import EvalOptions, run_eval
 
     layout = RunLayout(run_dir)
@@ -207,6 +200,4 @@ def eval_(
         seed=seed, device=device, surface_level=surface_level, refine_test_poses=refine_test_poses,
         refine_test_pose_steps=refine_test_pose_steps, force=force,
     )
-    with progress_sink(err_console, quiet=quiet or json_out) as progress:
-        summary = run_eval(options, progress=progress)
-    print_summary(summary, json_out)
+    run_stage(run_eval, options, quiet, json_out)

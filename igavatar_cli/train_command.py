@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, err_console, print_summary, user_errors
+from igavatar_cli.cli_common import JsonOut, Quiet, RunDir, run_stage, user_errors
 from igavatar_cli.help_panels import ADVANCED, CONSOLE, INPUTS, QUALITY, help_panels
 from stages.layout import DEFAULT_RUN_DIR, RunLayout
 
@@ -116,7 +116,6 @@ def train(
     json_out: JsonOut = False,
 ) -> None:
     """Train the hash-grid SDF avatar on a dataset artifact and write a model artifact."""
-    from igavatar_cli.progress import progress_sink
     from stages.train import TrainOptions, run_train
 
     layout = RunLayout(run_dir)
@@ -132,6 +131,4 @@ def train(
         error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )
-    with progress_sink(err_console, quiet=quiet or json_out) as progress:
-        summary = run_train(options, progress=progress)
-    print_summary(summary, json_out)
+    run_stage(run_train, options, quiet, json_out)

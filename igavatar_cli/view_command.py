@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from igavatar_cli.cli_common import err_console, print_summary, user_errors
+from igavatar_cli.cli_common import RunDir, err_console, print_summary, user_errors
 from igavatar_cli.help_panels import CONSOLE, INPUTS, help_panels
 from stages.layout import DEFAULT_RUN_DIR
 
@@ -35,7 +35,7 @@ def view(
         help="Eval report whose scans are shown with the avatar's distance to them \\[default: RUN_DIR/report].")] = None,
     gt: Annotated[Optional[Path], typer.Option(
         help="Folder of world-space scans <frame>.ply to show instead of the report's \\[default: none].")] = None,
-    run_dir: Annotated[Path, typer.Option("--run-dir", help="Run directory holding every artifact by default.")] = DEFAULT_RUN_DIR,
+    run_dir: RunDir = DEFAULT_RUN_DIR,
     motion: Annotated[Optional[str], typer.Option(
         help="Poses for the frame slider: a procedural motion (walk, turn, arm_raise, squat, turntable), a pose "
              ".npz, a capture or a dataset \\[default: the dataset's training and test frames].")] = None,
