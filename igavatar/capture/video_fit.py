@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from igavatar.body.anny_body import AnnyBody
+from igavatar.body.silhouette_fit import SilhouetteTarget
 from igavatar.body.landmark_fit import BodyPoints, LandmarkFit, LandmarkFitConfig, LandmarkTargets, fit_landmarks
 from igavatar.capture.person_landmarks import LANDMARK_COUNT, LANDMARKS, MIRROR, PersonTracks
 from igavatar.errors import InputError
@@ -251,5 +252,9 @@ def fit_anny_to_tracks(body: AnnyBody, tracks: PersonTracks, camera: VideoCamera
     skeleton = body.skeleton
     config = config or LandmarkFitConfig(hinge_joints=tuple(skeleton.index(b) for b in HINGE_BONES))
     free = [skeleton.index(bone) for bone in FREE_BONES]
+    silhouette = None
+    if config.silhouette_weight > 0:
+        silhouette = SilhouetteTarget.of(tracks.masks, body.rest_vertices.numpy(), body.skinning_weights.numpy(),
+                                         skeleton.rest_joints, config.silhouette_points)
     return fit_landmarks(skeleton, anny_landmark_points(body), free, camera.K, camera.w2c,
-                         landmark_targets(tracks), config)
+                         landmark_targets(tracks), config, silhouette)

@@ -1,0 +1,142 @@
+"""A silhouette term for the landmark fit: the posed body must lie inside the person's mask.
+
+    target = SilhouetteTarget.of(masks, rest_vertices, skinning_weights, rest_joints)
+    loss = target.outside_px(global_posed, K, w2c)   # mean distance (px) of body points outside the masks
+
+Landmarks place a body's joints but say little about where its flesh is: in a side view the
+hips' and shoulders' landmarks sit somewhere inside the torso, and the fit then puts the torso a
+few centimetres in front of or behind the person (the view's lateral direction), which the avatar
+sees as a different body in each frame. The mask says where the person is. The body model is
+naked and the person is clothed, so only one side of the comparison holds for every outfit: every
+point of the body lies inside the mask (clothes, hair and a dress only make the mask larger). The
+term is each surface point's distance outside the mask, read from the mask's distance transform
+at its projection (bilinear, so it is differentiable in the pose), robust (Huber) beyond a few px.
+
+The surface is a fixed subset of the body's vertices with their 4 strongest skinning weights, so
+that posing it every step of the fit stays cheap (60 frames x 1500 points).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+#: Points of the body surface the term checks (a fixed, evenly spread subset of the mesh).
+SURFACE_POINTS = 1500
+#: Skinning weights kept per point (Anny's vertices carry at most a few).
+WEIGHTS_PER_POINT = 4
+#: Points along each mask's outline for the coverage term.
+CONTOUR_POINTS = 100
+#: Clothes may stand this far (a share of the person's height in the image) off the body.
+CLOTHES_MARGIN = 0.02
+#: Below this many pixels outside, the penalty is quadratic (segmentation edges are soft).
+HUBER_PX = 2.0
+
+
+@dataclass(frozen=True)
+class SilhouetteTarget:
+    """What the silhouette term needs, as float64 tensors.
+
+    Attributes:
+        outside_distance: (N, 1, H, W) per frame, each pixel's distance in px to the mask (0 inside).
+        rest_points: (S, 3) rest-pose surface points (world, meters).
+        bones: (S, WEIGHTS_PER_POINT) long, the points' strongest bones; weights: (S, WEIGHTS_PER_POINT)
+            their skinning weights, renormalised to sum to 1.
+        rest_joints: (J, 3) the skeleton's rest joints (for the bones' canonical -> posed transforms).
+        frame_weight: (N,) 0 for frames without a usable mask.
+    """
+
+    outside_distance: torch.Tensor
+    rest_points: torch.Tensor
+    bones: torch.Tensor
+    weights: torch.Tensor
+    rest_joints: torch.Tensor
+    frame_weight: torch.Tensor
+    contour_px: torch.Tensor | None = None
+    contour_margin_px: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, masks: np.ndarray, rest_vertices: np.ndarray, skinning_weights: np.ndarray,
+           rest_joints: np.ndarray, points: int = SURFACE_POINTS) -> "SilhouetteTarget":
+        """From (N, H, W) mask probabilities, the body's (V, 3) rest vertices, (V, J) skinning
+        weights and (J, 3) rest joints."""
+        inside = np.asarray(masks) >= 0.5
+        distance = np.stack([cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 5) for m in inside])
+        chosen = spread_subset(np.asarray(rest_vertices, dtype=np.float64), points)
+        weights = np.asarray(skinning_weights, dtype=np.float64)[chosen]
+        bones = np.argsort(-weights, axis=1)[:, :WEIGHTS_PER_POINT]
+        kept = np.take_along_axis(weights, bones, axis=1)
+        kept = kept / np.maximum(kept.sum(1, keepdims=True), 1e-12)
+        contours = np.stack([contour_points(m, CONTOUR_POINTS) for m in inside])
+        heights = np.array([np.ptp(np.nonzero(m)[0]) if m.any() else 0 for m in inside], dtype=np.float64)
+        return cls(torch.as_tensor(distance, dtype=torch.float64)[:, None],
+                   torch.as_tensor(np.asarray(rest_vertices, dtype=np.float64)[chosen]),
+                   torch.as_tensor(bones, dtype=torch.long), torch.as_tensor(kept),
+                   torch.as_tensor(np.array(rest_joints, dtype=np.float64)),
+                   torch.as_tensor(inside.any(axis=(1, 2)), dtype=torch.float64),
+                   torch.as_tensor(contours), torch.as_tensor(CLOTHES_MARGIN * heights))
+
+    def posed_points(self, global_posed: torch.Tensor) -> torch.Tensor:
+        """(N, S, 3) world surface points for (N, J, 4, 4) global joint transforms (rest -> posed)."""
+        rotation, translation = global_posed[..., :3, :3], global_posed[..., :3, 3]
+        # Bone j maps a rest point x to R_j (x - rest_j) + t_j.
+        rotation_k = rotation[:, self.bones]                       # (N, S, K, 3, 3)
+        offset = self.rest_points[:, None] - self.rest_joints[self.bones]  # (S, K, 3)
+        moved = (rotation_k @ offset[None, ..., None])[..., 0] + translation[:, self.bones]
+        return (self.weights[None, ..., None] * moved).sum(-2)
+
+    def loss_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                coverage_weight: float) -> torch.Tensor:
+        """outside + coverage_weight x uncovered, both mean robust distances in px:
+        - outside: of the posed surface points beyond each frame's mask;
+        - uncovered: from the mask's outline to the nearest body point, beyond a margin for clothes
+          (it keeps the body from shrinking away from the outline, e.g. by moving off in depth)."""
+        x_camera = self.posed_points(global_posed) @ w2c[:3, :3].T + w2c[:3, 3]
+        uv = (x_camera @ K.T)[..., :2] / x_camera[..., 2:].clamp_min(1e-3)
+        height, width = self.outside_distance.shape[-2:]
+        # Pixel centres at integers; grid_sample's align_corners=True maps -1..1 onto 0..size-1. A
+        # point beyond the image reads the border's distance (the person is checked to be in frame).
+        grid = torch.stack((2 * uv[..., 0] / (width - 1) - 1, 2 * uv[..., 1] / (height - 1) - 1), dim=-1)
+        outside = torch.nn.functional.grid_sample(self.outside_distance, grid[:, None], mode="bilinear",
+                                                  padding_mode="border", align_corners=True)[:, 0, 0]
+        loss = self._mean(_huber(outside))
+        if coverage_weight > 0:
+            with torch.no_grad():  # which body point is nearest: the gradient flows through its distance only
+                nearest = torch.cdist(self.contour_px, uv).argmin(-1)  # (N, C)
+            closest = torch.gather(uv, 1, nearest[..., None].expand(-1, -1, 2))
+            gap = ((closest - self.contour_px).norm(dim=-1) - self.contour_margin_px[:, None]).clamp_min(0)
+            loss = loss + coverage_weight * self._mean(_huber(gap))
+        return loss
+
+    def _mean(self, per_point: torch.Tensor) -> torch.Tensor:
+        """Mean of (N, P) values over the frames that have a mask."""
+        total = (self.frame_weight.sum() * per_point.shape[1]).clamp_min(1.0)
+        return (self.frame_weight[:, None] * per_point).sum() / total
+
+
+def _huber(distance_px: torch.Tensor) -> torch.Tensor:
+    return torch.where(distance_px < HUBER_PX, 0.5 * distance_px**2 / HUBER_PX, distance_px - 0.5 * HUBER_PX)
+
+
+def contour_points(mask: np.ndarray, count: int) -> np.ndarray:
+    """(count, 2) float (x, y) evenly spaced along the outer outline of the mask's largest region."""
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return np.zeros((count, 2))
+    outline = max(contours, key=cv2.contourArea)[:, 0].astype(np.float64)
+    return outline[np.linspace(0, len(outline) - 1, count).round().astype(int)]
+
+
+def spread_subset(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of up to `count` of `points` (P, 3) spread evenly over them (farthest-point
+    sampling from the first point; deterministic)."""
+    count = min(count, len(points))
+    chosen = np.zeros(count, dtype=np.int64)
+    nearest = np.full(len(points), np.inf)
+    for i in range(1, count):
+        nearest = np.minimum(nearest, np.linalg.norm(points - points[chosen[i - 1]], axis=1))
+        chosen[i] = int(nearest.argmax())
+    return chosen
