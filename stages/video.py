@@ -191,7 +191,8 @@ def _meta(options: VideoOptions, frames: VideoFrames, body: AnnyBody, camera: Vi
         "fit": {"mean_residual_px": round(fit.mean_residual_px(), 3),
                 "median_residual_px": round(float(np.nanmedian(residual)), 3),
                 "frame_residual_px": [round(float(v), 2) for v in np.nanmean(residual, axis=1)],
-                "landmark_offset_cm": _offsets_cm(fit.landmark_offsets)},
+                "landmark_offset_cm": _offsets_cm(fit.landmark_offsets),
+                **({"silhouette": {k: round(v, 3) for k, v in fit.silhouette_px.items()}} if fit.silhouette_px else {})},
     })
     return meta
 

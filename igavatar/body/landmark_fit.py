@@ -19,8 +19,8 @@ What is fitted: per frame, the root's world rotation and translation and the loc
   body (a heavier body's hip landmarks sit further from its thigh bones). Without it the fit
   tilted limbs and the pelvis in depth, where a single view cannot see it, to absorb the
   difference: on a heavy subject its pelvis leant 12 cm back in a front view.
-- with the person's masks (a SilhouetteTarget), a last stage adds their outline: the body inside
-  the mask and near its outline (igavatar.body.silhouette_fit).
+- with the person's masks (a SilhouetteTarget), a last stage keeps the body inside them
+  (igavatar.body.silhouette_fit).
 The root is initialised per frame from the world landmarks' torso and the 2D hips (its depth from
 the torso's length in pixels against the skeleton's), then the root is fitted alone, then all,
 then all with the silhouette.
@@ -99,13 +99,13 @@ class LandmarkFitConfig:
     translation_smooth_weight: float = 20.0
     # The silhouette stage (igavatar.body.silhouette_fit), run after the landmark stages when the
     # person's masks are given. Measured on three synthetic turns and a synthetic walk/arm-raise/squat
-    # clip (tests/benchmarks/results/video-fit-silhouette.md): joints 9-25 % closer to the truth
-    # and 2D joints 0.5-1.2 px closer. 3000 surface points (an outline's nearest point then lies
-    # closer) pulled the dress's legs towards its hem; moving only the root did less.
+    # clip (tests/benchmarks/results/video-fit-silhouette.md): the body inside the masks brought the
+    # joints closer on every clip. The outline's coverage (coverage_weight > 0) fixed more of the
+    # frames' depth on some clips, but pulled the dress's legs towards its hem: off by default.
     silhouette_weight: float = 10.0
     silhouette_iterations: int = 300
     silhouette_points: int = 600
-    coverage_weight: float = 2.0
+    coverage_weight: float = 0.0
     prior_weight: float = 0.002
     hinge_weight: float = 1.0
     hinge_joints: tuple[int, ...] = ()
@@ -127,6 +127,8 @@ class LandmarkFit:
         posed_points: (N, L, 3) float64 fitted landmark positions in world coordinates.
         landmark_offsets: (L, 3) float64 the clip's fitted offsets of the landmarks from their
             rest points (rest frame, meters; zeros when none were fitted).
+        silhouette_px: after a silhouette stage, the mean distances (px) of the body outside the
+            masks and of the masks' outlines from the body (SilhouetteTarget.mean_distances_px).
     """
 
     local_rotations: np.ndarray
@@ -134,6 +136,7 @@ class LandmarkFit:
     residual_px: np.ndarray
     posed_points: np.ndarray
     landmark_offsets: np.ndarray
+    silhouette_px: dict[str, float] | None = None
 
     def mean_residual_px(self) -> float:
         """Mean reprojection error over every used landmark of every frame."""
@@ -357,5 +360,11 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
         uv, _ = _project(camera[0], camera[1], x_world)
         residual = (uv - obs.image_xy).norm(dim=-1).numpy()
     residual[obs.confidence.numpy() <= 0] = np.nan
-    return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy(), offsets.numpy())
+    silhouette_px = None
+    if silhouette is not None and config.silhouette_weight > 0:
+        global_posed = forward_kinematics(local, torch.tensor(skeleton.rest_joints, dtype=local.dtype),
+                                          skeleton.parents, params.translation.detach())
+        silhouette_px = silhouette.mean_distances_px(global_posed, *camera)
+    return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy(), offsets.numpy(),
+                       silhouette_px)
 

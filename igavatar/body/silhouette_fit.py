@@ -1,7 +1,7 @@
 """A silhouette term for the landmark fit: the posed body must lie inside the person's mask.
 
-    target = SilhouetteTarget.of(masks, rest_vertices, skinning_weights, rest_joints)
-    loss = target.outside_px(global_posed, K, w2c)   # mean distance (px) of body points outside the masks
+    target = SilhouetteTarget.of(masks, rest_vertices, skinning_weights, rest_joints, points=600)
+    loss = target.loss_px(global_posed, K, w2c, coverage_weight=0.0)  # robust mean px outside the masks
 
 Landmarks place a body's joints but say little about where its flesh is: in a side view the
 hips' and shoulders' landmarks sit somewhere inside the torso, and the fit then puts the torso a
@@ -12,8 +12,14 @@ point of the body lies inside the mask (clothes, hair and a dress only make the 
 term is each surface point's distance outside the mask, read from the mask's distance transform
 at its projection (bilinear, so it is differentiable in the pose), robust (Huber) beyond a few px.
 
+The other side, optional (coverage_weight > 0, off in the video fit): each point of the mask's
+outline should lie within a margin for clothes of the body, up to a cap. It is what says how far
+away the body is (its size in the image), and it did fix some of the frames' depth, but where
+clothes stand far off the body (a dress) it pulled the legs apart
+(tests/benchmarks/results/video-fit-silhouette.md).
+
 The surface is a fixed subset of the body's vertices with their 4 strongest skinning weights, so
-that posing it every step of the fit stays cheap (60 frames x 1500 points).
+that posing it every step of the fit stays cheap (60 frames x 600 points).
 """
 
 from __future__ import annotations
@@ -32,6 +38,8 @@ WEIGHTS_PER_POINT = 4
 CONTOUR_POINTS = 100
 #: Clothes may stand this far (a share of the person's height in the image) off the body.
 CLOTHES_MARGIN = 0.02
+#: Outline points farther than the margin plus this (a share of the height) from the body pull no more.
+COVERAGE_CAP = 0.03
 #: Below this many pixels outside, the penalty is quadratic (segmentation edges are soft).
 HUBER_PX = 2.0
 
@@ -57,6 +65,7 @@ class SilhouetteTarget:
     frame_weight: torch.Tensor
     contour_px: torch.Tensor | None = None
     contour_margin_px: torch.Tensor | None = None
+    contour_cap_px: torch.Tensor | None = None
 
     @classmethod
     def of(cls, masks: np.ndarray, rest_vertices: np.ndarray, skinning_weights: np.ndarray,
@@ -77,7 +86,8 @@ class SilhouetteTarget:
                    torch.as_tensor(bones, dtype=torch.long), torch.as_tensor(kept),
                    torch.as_tensor(np.array(rest_joints, dtype=np.float64)),
                    torch.as_tensor(inside.any(axis=(1, 2)), dtype=torch.float64),
-                   torch.as_tensor(contours), torch.as_tensor(CLOTHES_MARGIN * heights))
+                   torch.as_tensor(contours), torch.as_tensor(CLOTHES_MARGIN * heights),
+                   torch.as_tensor(COVERAGE_CAP * heights))
 
     def posed_points(self, global_posed: torch.Tensor) -> torch.Tensor:
         """(N, S, 3) world surface points for (N, J, 4, 4) global joint transforms (rest -> posed)."""
@@ -88,12 +98,13 @@ class SilhouetteTarget:
         moved = (rotation_k @ offset[None, ..., None])[..., 0] + translation[:, self.bones]
         return (self.weights[None, ..., None] * moved).sum(-2)
 
-    def loss_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
-                coverage_weight: float) -> torch.Tensor:
-        """outside + coverage_weight x uncovered, both mean robust distances in px:
-        - outside: of the posed surface points beyond each frame's mask;
-        - uncovered: from the mask's outline to the nearest body point, beyond a margin for clothes
-          (it keeps the body from shrinking away from the outline, e.g. by moving off in depth)."""
+    def distances_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                     coverage: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(outside (N, S), uncovered (N, C) or None), in px:
+        - outside: each posed surface point's distance beyond its frame's mask;
+        - uncovered: each point of the mask's outline's distance to the nearest body point, less a
+          margin for clothes (it keeps the body from shrinking away from the outline, e.g. by
+          moving off in depth)."""
         x_camera = self.posed_points(global_posed) @ w2c[:3, :3].T + w2c[:3, 3]
         uv = (x_camera @ K.T)[..., :2] / x_camera[..., 2:].clamp_min(1e-3)
         height, width = self.outside_distance.shape[-2:]
@@ -102,14 +113,29 @@ class SilhouetteTarget:
         grid = torch.stack((2 * uv[..., 0] / (width - 1) - 1, 2 * uv[..., 1] / (height - 1) - 1), dim=-1)
         outside = torch.nn.functional.grid_sample(self.outside_distance, grid[:, None], mode="bilinear",
                                                   padding_mode="border", align_corners=True)[:, 0, 0]
+        if not coverage:
+            return outside, None
+        with torch.no_grad():  # which body point is nearest: the gradient flows through its distance only
+            nearest = torch.cdist(self.contour_px, uv).argmin(-1)  # (N, C)
+        closest = torch.gather(uv, 1, nearest[..., None].expand(-1, -1, 2))
+        gap = ((closest - self.contour_px).norm(dim=-1) - self.contour_margin_px[:, None]).clamp_min(0)
+        # Beyond the cap an outline point is clothes standing off the body (a skirt's hem): no pull.
+        return outside, torch.minimum(gap, self.contour_cap_px[:, None])
+
+    def loss_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                coverage_weight: float) -> torch.Tensor:
+        """Mean robust outside + coverage_weight x mean robust uncovered distance (distances_px)."""
+        outside, uncovered = self.distances_px(global_posed, K, w2c, coverage_weight > 0)
         loss = self._mean(_huber(outside))
-        if coverage_weight > 0:
-            with torch.no_grad():  # which body point is nearest: the gradient flows through its distance only
-                nearest = torch.cdist(self.contour_px, uv).argmin(-1)  # (N, C)
-            closest = torch.gather(uv, 1, nearest[..., None].expand(-1, -1, 2))
-            gap = ((closest - self.contour_px).norm(dim=-1) - self.contour_margin_px[:, None]).clamp_min(0)
-            loss = loss + coverage_weight * self._mean(_huber(gap))
+        if uncovered is not None:
+            loss = loss + coverage_weight * self._mean(_huber(uncovered))
         return loss
+
+    def mean_distances_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> dict[str, float]:
+        """For the record: the mean outside and uncovered distances (px) over frames with a mask."""
+        with torch.no_grad():
+            outside, uncovered = self.distances_px(global_posed, K, w2c)
+            return {"outside_px": float(self._mean(outside)), "uncovered_px": float(self._mean(uncovered))}
 
     def _mean(self, per_point: torch.Tensor) -> torch.Tensor:
         """Mean of (N, P) values over the frames that have a mask."""

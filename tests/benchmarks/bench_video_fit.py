@@ -12,6 +12,9 @@ the same landmarks, so the detector's output is held fixed and only the fit diff
 raise and a squat, 20 frames each, one fixed camera) written to an mp4 and read by
 `preprocess --video` with the true height and focal.
 
+Variants: the landmarks alone; the silhouette stage as the video path runs it (the body inside
+the mask); and that stage with the optional outline coverage term (coverage_weight 2).
+
 Scores over the clip's frames (14 main joints, bench_video.MAIN_JOINTS):
 - 2D px: joints projected into the frame against the true joints projected (after the clip's
   similarity below), what the avatar's rays see;
@@ -38,7 +41,8 @@ from bench_video import (MAIN_JOINTS, RESULTS, TEST_EVERY, igavatar, kept_indice
                          pa_mpjpe_mm, similarity)
 from provenance import commit  # noqa: E402
 
-VARIANTS = {"landmarks only": {"silhouette_weight": 0.0}, "with silhouette (default)": {}}
+VARIANTS = {"landmarks only": {"silhouette_weight": 0.0}, "body inside the mask (default)": {},
+            "inside + outline coverage": {"coverage_weight": 2.0}}
 
 
 def motion_clip(run: Path) -> tuple[Path, Path]:
