@@ -110,3 +110,19 @@ def test_silhouette_stage_puts_back_a_body_that_jittery_landmarks_moved(body):
     without, with_masks = joint_error_px(False), joint_error_px(True)
     # Measured: 7.5 px without the masks, 5.6 px with them (3.2 px with the outline coverage too).
     assert with_masks < 0.8 * without, (with_masks, without)
+
+
+def test_large_frames_keep_small_distance_maps_that_read_the_same():
+    """A 1024 px mask is measured on a 512 px distance map: the same distances, to about a pixel."""
+    mask = np.zeros((1, 1024, 1024), np.float32)
+    mask[0, 200:800, 300:700] = 1.0
+    rest = np.array([[0.0, 0.0, 0.0]])
+    target = SilhouetteTarget.of(mask, rest, np.ones((1, 1)), rest, points=1)
+    assert target.outside_distance.shape[-1] == 512 and target.map_scale == 2.0
+    # A point 100 px left of the mask's edge (x = 300) and one inside it.
+    K = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    for x, expected in ((200.0, 100.0), (500.0, 0.0)):
+        transform = torch.eye(4, dtype=torch.float64)[None, None].clone()
+        transform[..., :3, 3] = torch.tensor([x, 500.0, 1.0], dtype=torch.float64)
+        outside, _ = target.distances_px(transform, K, torch.eye(4, dtype=torch.float64), coverage=False)
+        assert float(outside[0, 0]) == pytest.approx(expected, abs=1.5)

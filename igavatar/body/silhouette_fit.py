@@ -31,7 +31,10 @@ import numpy as np
 import torch
 
 #: Points of the body surface the term checks (a fixed, evenly spread subset of the mesh).
-SURFACE_POINTS = 1500
+SURFACE_POINTS = 600
+#: The distance maps are kept at most this many pixels on a side (float32): 300 frames of 1024 px
+#: would otherwise hold 2.5 GB; a distance map is smooth, so sampling a smaller one loses little.
+DISTANCE_MAP_SIDE = 512
 #: Skinning weights kept per point (Anny's vertices carry at most a few).
 WEIGHTS_PER_POINT = 4
 #: Points along each mask's outline for the coverage term.
@@ -49,7 +52,8 @@ class SilhouetteTarget:
     """What the silhouette term needs, as float64 tensors.
 
     Attributes:
-        outside_distance: (N, 1, H, W) per frame, each pixel's distance in px to the mask (0 inside).
+        outside_distance: (N, 1, h, w) float32 per frame, each pixel's distance to the mask (0 inside)
+            in the frame's px, at 1 / map_scale of the frame's size.
         rest_points: (S, 3) rest-pose surface points (world, meters).
         bones: (S, WEIGHTS_PER_POINT) long, the points' strongest bones; weights: (S, WEIGHTS_PER_POINT)
             their skinning weights, renormalised to sum to 1.
@@ -63,6 +67,7 @@ class SilhouetteTarget:
     weights: torch.Tensor
     rest_joints: torch.Tensor
     frame_weight: torch.Tensor
+    map_scale: float = 1.0
     contour_px: torch.Tensor | None = None
     contour_margin_px: torch.Tensor | None = None
     contour_cap_px: torch.Tensor | None = None
@@ -73,7 +78,7 @@ class SilhouetteTarget:
         """From (N, H, W) mask probabilities, the body's (V, 3) rest vertices, (V, J) skinning
         weights and (J, 3) rest joints."""
         inside = np.asarray(masks) >= 0.5
-        distance = np.stack([cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 5) for m in inside])
+        distance, scale = _distance_maps(inside)
         chosen = spread_subset(np.asarray(rest_vertices, dtype=np.float64), points)
         weights = np.asarray(skinning_weights, dtype=np.float64)[chosen]
         bones = np.argsort(-weights, axis=1)[:, :WEIGHTS_PER_POINT]
@@ -81,11 +86,11 @@ class SilhouetteTarget:
         kept = kept / np.maximum(kept.sum(1, keepdims=True), 1e-12)
         contours = np.stack([contour_points(m, CONTOUR_POINTS) for m in inside])
         heights = np.array([np.ptp(np.nonzero(m)[0]) if m.any() else 0 for m in inside], dtype=np.float64)
-        return cls(torch.as_tensor(distance, dtype=torch.float64)[:, None],
+        return cls(torch.as_tensor(distance)[:, None],
                    torch.as_tensor(np.asarray(rest_vertices, dtype=np.float64)[chosen]),
                    torch.as_tensor(bones, dtype=torch.long), torch.as_tensor(kept),
                    torch.as_tensor(np.array(rest_joints, dtype=np.float64)),
-                   torch.as_tensor(inside.any(axis=(1, 2)), dtype=torch.float64),
+                   torch.as_tensor(inside.any(axis=(1, 2)), dtype=torch.float64), scale,
                    torch.as_tensor(contours), torch.as_tensor(CLOTHES_MARGIN * heights),
                    torch.as_tensor(COVERAGE_CAP * heights))
 
@@ -110,9 +115,11 @@ class SilhouetteTarget:
         height, width = self.outside_distance.shape[-2:]
         # Pixel centres at integers; grid_sample's align_corners=True maps -1..1 onto 0..size-1. A
         # point beyond the image reads the border's distance (the person is checked to be in frame).
-        grid = torch.stack((2 * uv[..., 0] / (width - 1) - 1, 2 * uv[..., 1] / (height - 1) - 1), dim=-1)
-        outside = torch.nn.functional.grid_sample(self.outside_distance, grid[:, None], mode="bilinear",
-                                                  padding_mode="border", align_corners=True)[:, 0, 0]
+        map_uv = (uv + 0.5) / self.map_scale - 0.5
+        grid = torch.stack((2 * map_uv[..., 0] / (width - 1) - 1, 2 * map_uv[..., 1] / (height - 1) - 1), dim=-1)
+        outside = torch.nn.functional.grid_sample(self.outside_distance, grid[:, None].to(self.outside_distance.dtype),
+                                                  mode="bilinear", padding_mode="border",
+                                                  align_corners=True)[:, 0, 0].to(uv.dtype)
         if not coverage:
             return outside, None
         with torch.no_grad():  # which body point is nearest: the gradient flows through its distance only
@@ -141,6 +148,19 @@ class SilhouetteTarget:
         """Mean of (N, P) values over the frames that have a mask."""
         total = (self.frame_weight.sum() * per_point.shape[1]).clamp_min(1.0)
         return (self.frame_weight[:, None] * per_point).sum() / total
+
+
+def _distance_maps(inside: np.ndarray) -> tuple[np.ndarray, float]:
+    """(N, h, w) float32 distances in frame px to each mask (N, H, W) bool, and the frame px per
+    map px (the maps shrunk to at most DISTANCE_MAP_SIDE on a side)."""
+    height, width = inside.shape[1:]
+    scale = max(1.0, max(height, width) / DISTANCE_MAP_SIDE)
+    size = (max(1, round(width / scale)), max(1, round(height / scale)))
+    maps = []
+    for mask in inside:
+        small = mask if scale == 1.0 else cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
+        maps.append(cv2.distanceTransform((~small).astype(np.uint8), cv2.DIST_L2, 5) * np.float32(scale))
+    return np.stack(maps).astype(np.float32), float(scale)
 
 
 def _huber(distance_px: torch.Tensor) -> torch.Tensor:

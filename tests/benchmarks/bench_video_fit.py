@@ -143,7 +143,7 @@ def run_clip(name: str, truth: Path, video: Path) -> list[dict]:
 
 
 def markdown(rows: list[dict], command: str, made: str) -> str:
-    lines = [f"# Video fit with and without the silhouette stage (no training)\n",
+    lines = ["# Video fit with and without the silhouette stage (no training)\n",
              f"Commit `{made}`; command: `{command}`. CPU (2 cores). The same BlazePose landmarks and masks "
              "(each clip's `preprocess --video` capture with the true height and focal), refitted; see the "
              "script's docstring for the scores.\n",
