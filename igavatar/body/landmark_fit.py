@@ -356,14 +356,14 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
     with torch.no_grad():
         local = params.local_rotations(skeleton.num_joints, free)
         offsets = params.offsets() if config.offset_weight > 0 else torch.zeros_like(params.raw_offsets)
-        x_world = _posed_points(skeleton, points, local, params.translation, offsets)
+        global_posed = forward_kinematics(local, torch.tensor(skeleton.rest_joints, dtype=local.dtype),
+                                          skeleton.parents, params.translation)
+        x_world = _posed_points(skeleton, points, local, params.translation, offsets, global_posed)
         uv, _ = _project(camera[0], camera[1], x_world)
         residual = (uv - obs.image_xy).norm(dim=-1).numpy()
     residual[obs.confidence.numpy() <= 0] = np.nan
     silhouette_px = None
     if silhouette is not None and config.silhouette_weight > 0:
-        global_posed = forward_kinematics(local, torch.tensor(skeleton.rest_joints, dtype=local.dtype),
-                                          skeleton.parents, params.translation.detach())
         silhouette_px = silhouette.mean_distances_px(global_posed, *camera)
     return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy(), offsets.numpy(),
                        silhouette_px)

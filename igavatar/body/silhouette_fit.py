@@ -18,8 +18,9 @@ away the body is (its size in the image), and it did fix some of the frames' dep
 clothes stand far off the body (a dress) it pulled the legs apart
 (tests/benchmarks/results/video-fit-silhouette.md).
 
-The surface is a fixed subset of the body's vertices with their 4 strongest skinning weights, so
-that posing it every step of the fit stays cheap (60 frames x 600 points).
+The surface is a fixed subset of the body's vertices (60 frames x 600 points stay cheap to pose
+every step of the fit), skinned with their 4 strongest weights by the shared
+igavatar.body.skeleton.linear_blend_skinning.
 """
 
 from __future__ import annotations
@@ -29,6 +30,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+
+from igavatar.body.rotations import rigid_matrix
+from igavatar.body.skeleton import linear_blend_skinning
 
 #: Points of the body surface the term checks (a fixed, evenly spread subset of the mesh).
 SURFACE_POINTS = 600
@@ -55,17 +59,17 @@ class SilhouetteTarget:
         outside_distance: (N, 1, h, w) float32 per frame, each pixel's distance to the mask (0 inside)
             in the frame's px, at 1 / map_scale of the frame's size.
         rest_points: (S, 3) rest-pose surface points (world, meters).
-        bones: (S, WEIGHTS_PER_POINT) long, the points' strongest bones; weights: (S, WEIGHTS_PER_POINT)
-            their skinning weights, renormalised to sum to 1.
-        rest_joints: (J, 3) the skeleton's rest joints (for the bones' canonical -> posed transforms).
+        weights: (S, J) their skinning weights, only the WEIGHTS_PER_POINT strongest, renormalised
+            to sum to 1.
+        rest_to_joint: (J, 4, 4) [I | -rest_j]: rest pose -> each joint's rest frame, so that a
+            global joint transform G_j makes the bone transform G_j @ rest_to_joint_j.
         frame_weight: (N,) 0 for frames without a usable mask.
     """
 
     outside_distance: torch.Tensor
     rest_points: torch.Tensor
-    bones: torch.Tensor
     weights: torch.Tensor
-    rest_joints: torch.Tensor
+    rest_to_joint: torch.Tensor
     frame_weight: torch.Tensor
     map_scale: float = 1.0
     contour_px: torch.Tensor | None = None
@@ -84,24 +88,22 @@ class SilhouetteTarget:
         bones = np.argsort(-weights, axis=1)[:, :WEIGHTS_PER_POINT]
         kept = np.take_along_axis(weights, bones, axis=1)
         kept = kept / np.maximum(kept.sum(1, keepdims=True), 1e-12)
+        strongest = np.zeros_like(weights)
+        np.put_along_axis(strongest, bones, kept, axis=1)
+        rest_joints = torch.as_tensor(np.array(rest_joints, dtype=np.float64))
         contours = np.stack([contour_points(m, CONTOUR_POINTS) for m in inside])
         heights = np.array([np.ptp(np.nonzero(m)[0]) if m.any() else 0 for m in inside], dtype=np.float64)
         return cls(torch.as_tensor(distance)[:, None],
                    torch.as_tensor(np.asarray(rest_vertices, dtype=np.float64)[chosen]),
-                   torch.as_tensor(bones, dtype=torch.long), torch.as_tensor(kept),
-                   torch.as_tensor(np.array(rest_joints, dtype=np.float64)),
+                   torch.as_tensor(strongest),
+                   rigid_matrix(torch.eye(3, dtype=torch.float64).expand(len(rest_joints), 3, 3), -rest_joints),
                    torch.as_tensor(inside.any(axis=(1, 2)), dtype=torch.float64), scale,
                    torch.as_tensor(contours), torch.as_tensor(CLOTHES_MARGIN * heights),
                    torch.as_tensor(COVERAGE_CAP * heights))
 
     def posed_points(self, global_posed: torch.Tensor) -> torch.Tensor:
         """(N, S, 3) world surface points for (N, J, 4, 4) global joint transforms (rest -> posed)."""
-        rotation, translation = global_posed[..., :3, :3], global_posed[..., :3, 3]
-        # Bone j maps a rest point x to R_j (x - rest_j) + t_j.
-        rotation_k = rotation[:, self.bones]                       # (N, S, K, 3, 3)
-        offset = self.rest_points[:, None] - self.rest_joints[self.bones]  # (S, K, 3)
-        moved = (rotation_k @ offset[None, ..., None])[..., 0] + translation[:, self.bones]
-        return (self.weights[None, ..., None] * moved).sum(-2)
+        return linear_blend_skinning(self.rest_points, self.weights, global_posed @ self.rest_to_joint)
 
     def distances_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                      coverage: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from igavatar.body.anny_body import AnnyBody
-from igavatar.body.silhouette_fit import SilhouetteTarget
 from igavatar.body.landmark_fit import BodyPoints, LandmarkFit, LandmarkFitConfig, LandmarkTargets, fit_landmarks
+from igavatar.body.silhouette_fit import SilhouetteTarget
 from igavatar.capture.person_landmarks import LANDMARK_COUNT, LANDMARKS, MIRROR, PersonTracks
 from igavatar.errors import InputError
 
