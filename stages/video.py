@@ -153,7 +153,7 @@ def _fit(options: VideoOptions, frames: VideoFrames, tracks: PersonTracks, progr
     height, width = frames.images[0].shape[:2]
     camera = VideoCamera.for_frames(height, width, options.focal_px, options.fov_deg)
     progress.status(f"fitting the body to {len(frames.images)} frames")
-    return body, camera, fit_anny_to_tracks(body, tracks, camera), flips, tracks
+    return body, camera, fit_anny_to_tracks(body, tracks, camera, images=frames.images), flips, tracks
 
 
 def _offsets_cm(offsets_m: np.ndarray) -> dict[str, list[float]]:

@@ -20,7 +20,9 @@ What is fitted: per frame, the root's world rotation and translation and the loc
   tilted limbs and the pelvis in depth, where a single view cannot see it, to absorb the
   difference: on a heavy subject its pelvis leant 12 cm back in a front view.
 - with the person's masks (a SilhouetteTarget), a last stage keeps the body inside them
-  (igavatar.body.silhouette_fit).
+  (igavatar.body.silhouette_fit), and with the frames' optical flow (a FlowTarget) moves the
+  body's visible surface from frame to frame as the pixels moved (igavatar.body.flow_fit); the
+  smoothness prior is then weaker in every stage (flow_smooth_weight).
 The root is initialised per frame from the world landmarks' torso and the 2D hips (its depth from
 the torso's length in pixels against the skeleton's), then the root is fitted alone, then all,
 then all with the silhouette.
@@ -28,11 +30,13 @@ then all with the silhouette.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from igavatar.body.flow_fit import FlowTarget
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.silhouette_fit import SilhouetteTarget
 from igavatar.body.skeleton import Skeleton, forward_kinematics
@@ -94,8 +98,12 @@ class LandmarkFitConfig:
     huber_px: float = 8.0
     # Measured on three synthetic turns (tests/benchmarks/results/video-fit-offsets.md): a weaker
     # limb prior (0.5) and smoothness (2.0) let the fit tilt limbs in depth to absorb a few px.
+    # With the flow term below (frames given), the smoothness of every stage is flow_smooth_weight:
+    # the flow ties consecutive frames where the person has texture, fast motion included
+    # (tests/benchmarks/results/video-fit-flow.md).
     limb_weight: float = 4.0
     smooth_weight: float = 10.0
+    flow_smooth_weight: float = 5.0
     translation_smooth_weight: float = 20.0
     # The silhouette stage (igavatar.body.silhouette_fit), run after the landmark stages when the
     # person's masks are given. Measured on three synthetic turns and a synthetic walk/arm-raise/squat
@@ -106,6 +114,10 @@ class LandmarkFitConfig:
     silhouette_iterations: int = 300
     silhouette_points: int = 600
     coverage_weight: float = 0.0
+    # The optical-flow term of the same stage (igavatar.body.flow_fit), when the frames are given:
+    # consecutive poses move the body's visible surface as the pixels moved. Measured on the same
+    # four clips (tests/benchmarks/results/video-fit-flow.md): PA-MPJPE lower on all four.
+    flow_weight: float = 2.0
     prior_weight: float = 0.002
     hinge_weight: float = 1.0
     hinge_joints: tuple[int, ...] = ()
@@ -284,8 +296,9 @@ def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
 
 def _loss(local: torch.Tensor, params: _Parameters, obs: _Observations, skeleton: Skeleton, points: BodyPoints,
           camera: tuple[torch.Tensor, torch.Tensor], config: LandmarkFitConfig, free_joints: torch.Tensor,
-          silhouette: SilhouetteTarget | None = None) -> torch.Tensor:
-    """The fit's objective for the current parameters (a scalar); `silhouette` adds its term."""
+          silhouette: SilhouetteTarget | None = None, flow: FlowTarget | None = None) -> torch.Tensor:
+    """The fit's objective for the current parameters (a scalar); `silhouette` adds its term, and
+    `flow` (with a silhouette, whose surface points it moves) its own."""
     offsets = params.offsets() if config.offset_weight > 0 else None
     global_posed = forward_kinematics(local, torch.tensor(skeleton.rest_joints, dtype=local.dtype), skeleton.parents,
                                       params.translation)
@@ -310,6 +323,8 @@ def _loss(local: torch.Tensor, params: _Parameters, obs: _Observations, skeleton
     if silhouette is not None and config.silhouette_weight > 0:
         loss = loss + config.silhouette_weight * silhouette.loss_px(global_posed, camera[0], camera[1],
                                                                     config.coverage_weight)
+        if flow is not None and config.flow_weight > 0:
+            loss = loss + config.flow_weight * flow.loss_px(*silhouette.projected(global_posed, camera[0], camera[1]))
     return loss
 
 
@@ -320,7 +335,7 @@ def _hinge_slots(free_joints: torch.Tensor, hinge_joints: tuple[int, ...]) -> li
 
 def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int], K: np.ndarray, w2c: np.ndarray,
                   targets: LandmarkTargets, config: LandmarkFitConfig = LandmarkFitConfig(),
-                  silhouette: SilhouetteTarget | None = None) -> LandmarkFit:
+                  silhouette: SilhouetteTarget | None = None, flow: FlowTarget | None = None) -> LandmarkFit:
     """Fit the clip's poses (see the module docstring).
 
     Args:
@@ -330,6 +345,7 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
         targets: the observations of N frames.
         silhouette: the person's masks and the body's surface, for the last stage (None: no such
             stage; see igavatar.body.silhouette_fit).
+        flow: the frames' optical flow, a term of that stage (None: none; igavatar.body.flow_fit).
     Raises:
         InputError: no frame has the torso's landmarks.
     """
@@ -337,6 +353,9 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
     if targets.image_xy.shape != (n_frames, n_landmarks, 2) or points.joints.shape != (n_landmarks,):
         raise InputError(f"landmark fit: image_xy {targets.image_xy.shape} and {points.joints.shape[0]} body points "
                          f"do not match confidence {targets.confidence.shape}")
+    if flow is not None and silhouette is not None and config.flow_weight > 0 and config.silhouette_weight > 0:
+        # The flow follows real motion, so every stage leans less on the smoothness prior.
+        config = dataclasses.replace(config, smooth_weight=config.flow_smooth_weight)
     root, translation = initial_root(points, skeleton, K, w2c, targets)
     params = _Parameters(root, translation, len(free_joints), n_landmarks, points.mirror)
     obs = _Observations.of(targets, points)
@@ -351,7 +370,8 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
         for _ in range(iterations):
             optimizer.zero_grad(set_to_none=True)
             local = params.local_rotations(skeleton.num_joints, free)
-            _loss(local, params, obs, skeleton, points, camera, config, free, stage_silhouette).backward()
+            stage_flow = flow if stage_silhouette is not None else None
+            _loss(local, params, obs, skeleton, points, camera, config, free, stage_silhouette, stage_flow).backward()
             optimizer.step()
     with torch.no_grad():
         local = params.local_rotations(skeleton.num_joints, free)

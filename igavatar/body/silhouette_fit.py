@@ -105,6 +105,11 @@ class SilhouetteTarget:
         """(N, S, 3) world surface points for (N, J, 4, 4) global joint transforms (rest -> posed)."""
         return linear_blend_skinning(self.rest_points, self.weights, global_posed @ self.rest_to_joint)
 
+    def projected(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, S, 2) pixels and (N, S) camera-frame depths (meters) of the posed surface points."""
+        x_camera = self.posed_points(global_posed) @ w2c[:3, :3].T + w2c[:3, 3]
+        return (x_camera @ K.T)[..., :2] / x_camera[..., 2:].clamp_min(1e-3), x_camera[..., 2]
+
     def distances_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                      coverage: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(outside (N, S), uncovered (N, C) or None), in px:
@@ -112,8 +117,7 @@ class SilhouetteTarget:
         - uncovered: each point of the mask's outline's distance to the nearest body point, less a
           margin for clothes (it keeps the body from shrinking away from the outline, e.g. by
           moving off in depth)."""
-        x_camera = self.posed_points(global_posed) @ w2c[:3, :3].T + w2c[:3, 3]
-        uv = (x_camera @ K.T)[..., :2] / x_camera[..., 2:].clamp_min(1e-3)
+        uv, _ = self.projected(global_posed, K, w2c)
         height, width = self.outside_distance.shape[-2:]
         # Pixel centres at integers; grid_sample's align_corners=True maps -1..1 onto 0..size-1. A
         # point beyond the image reads the border's distance (the person is checked to be in frame).

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from igavatar.body.anny_body import AnnyBody
+from igavatar.body.flow_fit import FlowTarget
 from igavatar.body.landmark_fit import BodyPoints, LandmarkFit, LandmarkFitConfig, LandmarkTargets, fit_landmarks
 from igavatar.body.silhouette_fit import SilhouetteTarget
 from igavatar.capture.person_landmarks import LANDMARK_COUNT, LANDMARKS, MIRROR, PersonTracks
@@ -247,8 +248,9 @@ def landmark_targets(tracks: PersonTracks) -> LandmarkTargets:
 
 
 def fit_anny_to_tracks(body: AnnyBody, tracks: PersonTracks, camera: VideoCamera,
-                       config: LandmarkFitConfig | None = None) -> LandmarkFit:
-    """Anny's poses over the clip (every frame of `tracks` must have a detection)."""
+                       config: LandmarkFitConfig | None = None, images: list[np.ndarray] | None = None) -> LandmarkFit:
+    """Anny's poses over the clip (every frame of `tracks` must have a detection); `images`, the
+    frames ((H, W, 3) uint8 RGB each), add the optical-flow term to the silhouette stage."""
     skeleton = body.skeleton
     config = config or LandmarkFitConfig(hinge_joints=tuple(skeleton.index(b) for b in HINGE_BONES))
     free = [skeleton.index(bone) for bone in FREE_BONES]
@@ -256,5 +258,8 @@ def fit_anny_to_tracks(body: AnnyBody, tracks: PersonTracks, camera: VideoCamera
     if config.silhouette_weight > 0:
         silhouette = SilhouetteTarget.of(tracks.masks, body.rest_vertices.numpy(), body.skinning_weights.numpy(),
                                          skeleton.rest_joints, config.silhouette_points)
+    flow = None
+    if silhouette is not None and config.flow_weight > 0 and images is not None and len(images) > 1:
+        flow = FlowTarget.of(images, tracks.masks)
     return fit_landmarks(skeleton, anny_landmark_points(body), free, camera.K, camera.w2c,
-                         landmark_targets(tracks), config, silhouette)
+                         landmark_targets(tracks), config, silhouette, flow)

@@ -12,8 +12,9 @@ the same landmarks, so the detector's output is held fixed and only the fit diff
 raise and a squat, 20 frames each, one fixed camera) written to an mp4 and read by
 `preprocess --video` with the true height and focal.
 
-Variants: the landmarks alone; the silhouette stage as the video path runs it (the body inside
-the mask); and that stage with the optional outline coverage term (coverage_weight 2).
+Variants: the landmarks alone; the silhouette stage (the body inside the mask) without the
+optical-flow term; that stage with the flow term, as the video path runs it (the frames are the
+capture's images); and the stage with the optional outline coverage term (coverage_weight 2), no flow.
 
 Scores over the clip's frames (14 main joints, bench_video.MAIN_JOINTS):
 - 2D px: joints projected into the frame against the true joints projected (after the clip's
@@ -41,8 +42,8 @@ from bench_video import (MAIN_JOINTS, RESULTS, TEST_EVERY, igavatar, kept_indice
                          pa_mpjpe_mm, similarity)
 from provenance import commit  # noqa: E402
 
-VARIANTS = {"landmarks only": {"silhouette_weight": 0.0}, "body inside the mask (default)": {},
-            "inside + outline coverage": {"coverage_weight": 2.0}}
+VARIANTS = {"landmarks only": {"silhouette_weight": 0.0}, "body inside the mask": {"flow_weight": 0.0},
+            "inside + optical flow (default)": {}, "inside + outline coverage": {"coverage_weight": 2.0, "flow_weight": 0.0}}
 
 
 def motion_clip(run: Path) -> tuple[Path, Path]:
@@ -78,7 +79,8 @@ def motion_clip(run: Path) -> tuple[Path, Path]:
 
 
 def load_clip(truth: Path, video: Path):
-    """(body, tracks, camera, true joints (N, 14, 3) of the kept frames) of a bench_video clip."""
+    """(body, tracks, camera, true joints (N, 14, 3) of the kept frames, frames (N, H, W, 3) uint8
+    RGB) of a bench_video clip."""
     import cv2
 
     from igavatar.body.anny_body import AnnyBody, load_anny
@@ -95,7 +97,8 @@ def load_clip(truth: Path, video: Path):
     camera = VideoCamera(cameras["K"], cameras["w2c"], masks.shape[1], masks.shape[2], "the capture's")
     tracks = PersonTracks(np.ones(len(names), bool), masks.astype(np.float32), masks.astype(np.float32),
                           landmarks["image_xy"], landmarks["visibility"], landmarks["world_xyz"])
-    return body, tracks, camera, main_joints(truth)[kept_indices(video)]
+    images = [cv2.cvtColor(cv2.imread(str(video / "images" / f"{n}.png")), cv2.COLOR_BGR2RGB) for n in names]
+    return body, tracks, camera, main_joints(truth)[kept_indices(video)], images
 
 
 def scores(body, fit, true_joints: np.ndarray, camera) -> dict:
@@ -123,18 +126,19 @@ def scores(body, fit, true_joints: np.ndarray, camera) -> dict:
             "frame_depth_mm": 1000 * float(np.abs(depth).mean()), "fit_px": fit.mean_residual_px()}
 
 
-def run_clip(name: str, truth: Path, video: Path) -> list[dict]:
+def run_clip(name: str, truth: Path, video: Path, variants: list[str]) -> list[dict]:
     import dataclasses
 
     from igavatar.body.landmark_fit import LandmarkFitConfig
     from igavatar.capture.video_fit import HINGE_BONES, fit_anny_to_tracks
 
-    body, tracks, camera, true_joints = load_clip(truth, video)
+    body, tracks, camera, true_joints, images = load_clip(truth, video)
     rows = []
-    for variant, changes in VARIANTS.items():
+    for variant in variants:
+        changes = VARIANTS[variant]
         config = LandmarkFitConfig(hinge_joints=tuple(body.skeleton.index(b) for b in HINGE_BONES))
         started = time.perf_counter()
-        fit = fit_anny_to_tracks(body, tracks, camera, dataclasses.replace(config, **changes))
+        fit = fit_anny_to_tracks(body, tracks, camera, dataclasses.replace(config, **changes), images=images)
         row = {"clip": name, "variant": variant, "frames": len(true_joints), "fit_s": time.perf_counter() - started,
                **scores(body, fit, true_joints, camera)}
         print(json.dumps(row), flush=True)
@@ -143,7 +147,7 @@ def run_clip(name: str, truth: Path, video: Path) -> list[dict]:
 
 
 def markdown(rows: list[dict], command: str, made: str) -> str:
-    lines = ["# Video fit with and without the silhouette stage (no training)\n",
+    lines = ["# Video fit: the silhouette stage, with and without the optical flow (no training)\n",
              f"Commit `{made}`; command: `{command}`. CPU (2 cores). The same BlazePose landmarks and masks "
              "(each clip's `preprocess --video` capture with the true height and focal), refitted; see the "
              "script's docstring for the scores.\n",
@@ -159,6 +163,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run-dir", type=Path, required=True)
     parser.add_argument("--subjects", default="stripes-shirt,checker-dress,plain-heavy")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help="which of the fits, by name, comma-separated")
     parser.add_argument("--motion", action="store_true", help="also make and fit RUN/motion")
     parser.add_argument("--tag", default="video-fit-silhouette")
     parser.add_argument("--write-results", action="store_true")
@@ -168,7 +173,11 @@ def main() -> None:
              for s in args.subjects.split(",") if s]
     if args.motion:
         clips.append(("motion", *motion_clip(args.run_dir)))
-    rows = [row for name, truth, video in clips for row in run_clip(name, truth, video)]
+    variants = [v for v in args.variants.split(",") if v]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        parser.error(f"--variants: unknown {unknown}; known: {list(VARIANTS)}")
+    rows = [row for name, truth, video in clips for row in run_clip(name, truth, video, variants)]
     text = markdown(rows, command, made)
     print(text)
     if args.write_results:
