@@ -51,6 +51,7 @@ def test_flow_of_a_shifted_texture_is_the_shift_and_points_moving_with_it_cost_n
     residual, weight = target.residual_px(moving, depth)
     assert float(weight.mean()) > 0.9
     assert float((residual * weight).sum() / weight.sum()) < 0.3
+    assert target.mean_px(moving, depth) == pytest.approx(float((residual * weight).sum() / weight.sum()))
     # Points that stay still are off by the whole motion, and the loss's gradient moves them with it.
     still = torch.stack((start, start.clone())).requires_grad_(True)
     residual, weight = target.residual_px(still, depth)

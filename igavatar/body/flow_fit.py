@@ -97,6 +97,12 @@ class FlowTarget:
         robust = torch.where(residual < HUBER_PX, 0.5 * residual**2 / HUBER_PX, residual - 0.5 * HUBER_PX)
         return (weight * robust).sum() / weight.sum().clamp_min(1.0)
 
+    def mean_px(self, uv: torch.Tensor, depth: torch.Tensor) -> float:
+        """For the record: the mean residual_px over the weighted points (NaN if none)."""
+        with torch.no_grad():
+            residual, weight = self.residual_px(uv, depth)
+            return float((weight * residual).sum() / weight.sum()) if float(weight.sum()) > 0 else float("nan")
+
     def _sample(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The flow (N-1, S, 2) and reliability (N-1, S) at frame px uv (N-1, S, 2); outside the
         image the reliability reads 0."""

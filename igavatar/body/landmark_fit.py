@@ -140,7 +140,8 @@ class LandmarkFit:
         landmark_offsets: (L, 3) float64 the clip's fitted offsets of the landmarks from their
             rest points (rest frame, meters; zeros when none were fitted).
         silhouette_px: after a silhouette stage, the mean distances (px) of the body outside the
-            masks and of the masks' outlines from the body (SilhouetteTarget.mean_distances_px).
+            masks and of the masks' outlines from the body (SilhouetteTarget.mean_distances_px),
+            and with the flow term the visible points' mean distance off the flow ("flow_px").
     """
 
     local_rotations: np.ndarray
@@ -385,6 +386,10 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
     silhouette_px = None
     if silhouette is not None and config.silhouette_weight > 0:
         silhouette_px = silhouette.mean_distances_px(global_posed, *camera)
+        if flow is not None and config.flow_weight > 0:
+            flow_px = flow.mean_px(*silhouette.projected(global_posed, *camera))
+            if np.isfinite(flow_px):  # NaN when no point saw reliable flow
+                silhouette_px["flow_px"] = flow_px
     return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy(), offsets.numpy(),
                        silhouette_px)
 
