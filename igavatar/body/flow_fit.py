@@ -26,6 +26,8 @@ import cv2
 import numpy as np
 import torch
 
+from igavatar.body.image_maps import frame_px_grid, huber_px, shrunk_size
+
 #: Flow maps are kept at most this many pixels on a side (float32, as the silhouette's distance maps).
 FLOW_MAP_SIDE = 512
 #: Flow is trusted where the backward flow returns within this many pixels of the start.
@@ -59,9 +61,7 @@ class FlowTarget:
         """From N frames (each (H, W, 3) uint8 RGB) and their (N, H, W) mask probabilities."""
         if len(images) < 2:
             raise ValueError("FlowTarget needs at least two frames")
-        height, width = np.asarray(images[0]).shape[:2]
-        scale = max(1.0, max(height, width) / FLOW_MAP_SIDE)
-        size = (max(1, round(width / scale)), max(1, round(height / scale)))
+        scale, size = shrunk_size(*np.asarray(images[0]).shape[:2], FLOW_MAP_SIDE)
         grey = [cv2.resize(cv2.cvtColor(np.asarray(image), cv2.COLOR_RGB2GRAY), size, interpolation=cv2.INTER_AREA)
                 for image in images]
         inside = [cv2.resize(np.asarray(mask, dtype=np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
@@ -94,8 +94,7 @@ class FlowTarget:
     def loss_px(self, uv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
         """Robust mean of residual_px over the weighted points (0 if none)."""
         residual, weight = self.residual_px(uv, depth)
-        robust = torch.where(residual < HUBER_PX, 0.5 * residual**2 / HUBER_PX, residual - 0.5 * HUBER_PX)
-        return (weight * robust).sum() / weight.sum().clamp_min(1.0)
+        return (weight * huber_px(residual, HUBER_PX)).sum() / weight.sum().clamp_min(1.0)
 
     def mean_px(self, uv: torch.Tensor, depth: torch.Tensor) -> float:
         """For the record: the mean residual_px over the weighted points (NaN if none)."""
@@ -106,10 +105,7 @@ class FlowTarget:
     def _sample(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The flow (N-1, S, 2) and reliability (N-1, S) at frame px uv (N-1, S, 2); outside the
         image the reliability reads 0."""
-        height, width = self.flow.shape[-2:]
-        map_uv = (uv + 0.5) / self.map_scale - 0.5
-        grid = torch.stack((2 * map_uv[..., 0] / (width - 1) - 1, 2 * map_uv[..., 1] / (height - 1) - 1), dim=-1)
-        grid = grid[:, None].to(self.flow.dtype)
+        grid = frame_px_grid(uv, self.map_scale, *self.flow.shape[-2:])[:, None].to(self.flow.dtype)
         flow = torch.nn.functional.grid_sample(self.flow, grid, mode="bilinear", padding_mode="border",
                                                align_corners=True)[:, :, 0].transpose(1, 2)
         reliable = torch.nn.functional.grid_sample(self.reliable, grid, mode="bilinear", padding_mode="zeros",

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from igavatar.body.flow_fit import FlowTarget
+from igavatar.body.image_maps import huber_px
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.silhouette_fit import SilhouetteTarget
 from igavatar.body.skeleton import Skeleton, forward_kinematics
@@ -291,22 +292,18 @@ class _Observations:
                    torch.as_tensor(directions), torch.as_tensor(weight, dtype=torch.float64))
 
 
-def _huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
-    return torch.where(residual < delta, 0.5 * residual**2, delta * (residual - 0.5 * delta)) / delta
-
-
 def _loss(local: torch.Tensor, params: _Parameters, obs: _Observations, skeleton: Skeleton, points: BodyPoints,
           camera: tuple[torch.Tensor, torch.Tensor], config: LandmarkFitConfig, free_joints: torch.Tensor,
           silhouette: SilhouetteTarget | None = None, flow: FlowTarget | None = None) -> torch.Tensor:
     """The fit's objective for the current parameters (a scalar); `silhouette` adds its term, and
-    `flow` (with a silhouette, whose surface points it moves) its own."""
+    `flow` (with a silhouette, whose surface points it moves) its own; each is None when off."""
     offsets = params.offsets() if config.offset_weight > 0 else None
     global_posed = forward_kinematics(local, torch.tensor(skeleton.rest_joints, dtype=local.dtype), skeleton.parents,
                                       params.translation)
     x_world = _posed_points(skeleton, points, local, params.translation, offsets, global_posed)
     uv, x_camera = _project(camera[0], camera[1], x_world)
     residual = (uv - obs.image_xy).norm(dim=-1)
-    loss = (obs.confidence * _huber(residual, config.huber_px)).sum() / obs.confidence.sum().clamp_min(1.0)
+    loss = (obs.confidence * huber_px(residual, config.huber_px)).sum() / obs.confidence.sum().clamp_min(1.0)
     limbs = x_camera[:, points.limbs[:, 1]] - x_camera[:, points.limbs[:, 0]]
     cosine = (limbs * obs.limb_directions).sum(-1) / limbs.norm(dim=-1).clamp_min(1e-6)
     loss = loss + config.limb_weight * (obs.limb_weight * (1 - cosine)).sum() / obs.limb_weight.sum().clamp_min(1.0)
@@ -321,11 +318,11 @@ def _loss(local: torch.Tensor, params: _Parameters, obs: _Observations, skeleton
     for slot in _hinge_slots(free_joints, config.hinge_joints):
         rotvec = params.free[:, slot]
         loss = loss + config.hinge_weight * (torch.relu(-rotvec[:, 0]).square() + rotvec[:, 1:].square().sum(-1)).mean()
-    if silhouette is not None and config.silhouette_weight > 0:
-        loss = loss + config.silhouette_weight * silhouette.loss_px(global_posed, camera[0], camera[1],
-                                                                    config.coverage_weight)
-        if flow is not None and config.flow_weight > 0:
-            loss = loss + config.flow_weight * flow.loss_px(*silhouette.projected(global_posed, camera[0], camera[1]))
+    if silhouette is not None:
+        uv, depth = silhouette.projected(global_posed, camera[0], camera[1])  # once for both image terms
+        loss = loss + config.silhouette_weight * silhouette.loss_at(uv, config.coverage_weight)
+        if flow is not None:
+            loss = loss + config.flow_weight * flow.loss_px(uv, depth)
     return loss
 
 
@@ -354,7 +351,11 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
     if targets.image_xy.shape != (n_frames, n_landmarks, 2) or points.joints.shape != (n_landmarks,):
         raise InputError(f"landmark fit: image_xy {targets.image_xy.shape} and {points.joints.shape[0]} body points "
                          f"do not match confidence {targets.confidence.shape}")
-    if flow is not None and silhouette is not None and config.flow_weight > 0 and config.silhouette_weight > 0:
+    if silhouette is None or config.silhouette_weight <= 0:
+        silhouette = None
+    if flow is None or silhouette is None or config.flow_weight <= 0:
+        flow = None  # the flow term moves the silhouette stage's points: no stage, no term
+    else:
         # The flow follows real motion, so every stage leans less on the smoothness prior.
         config = dataclasses.replace(config, smooth_weight=config.flow_smooth_weight)
     root, translation = initial_root(points, skeleton, K, w2c, targets)
@@ -362,16 +363,15 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
     obs = _Observations.of(targets, points)
     camera = (torch.as_tensor(K, dtype=torch.float64), torch.as_tensor(w2c, dtype=torch.float64))
     free = torch.as_tensor(free_joints, dtype=torch.long)
-    stages = [([params.root_delta, params.translation], config.root_iterations, None),
-              (list(params.parameters()), config.iterations, None)]
-    if silhouette is not None and config.silhouette_weight > 0:
-        stages.append((list(params.parameters()), config.silhouette_iterations, silhouette))
-    for stage_params, iterations, stage_silhouette in stages:
+    stages = [([params.root_delta, params.translation], config.root_iterations, None, None),
+              (list(params.parameters()), config.iterations, None, None)]
+    if silhouette is not None:
+        stages.append((list(params.parameters()), config.silhouette_iterations, silhouette, flow))
+    for stage_params, iterations, stage_silhouette, stage_flow in stages:
         optimizer = torch.optim.Adam(stage_params, lr=config.learning_rate)
         for _ in range(iterations):
             optimizer.zero_grad(set_to_none=True)
             local = params.local_rotations(skeleton.num_joints, free)
-            stage_flow = flow if stage_silhouette is not None else None
             _loss(local, params, obs, skeleton, points, camera, config, free, stage_silhouette, stage_flow).backward()
             optimizer.step()
     with torch.no_grad():
@@ -384,10 +384,11 @@ def fit_landmarks(skeleton: Skeleton, points: BodyPoints, free_joints: list[int]
         residual = (uv - obs.image_xy).norm(dim=-1).numpy()
     residual[obs.confidence.numpy() <= 0] = np.nan
     silhouette_px = None
-    if silhouette is not None and config.silhouette_weight > 0:
-        silhouette_px = silhouette.mean_distances_px(global_posed, *camera)
-        if flow is not None and config.flow_weight > 0:
-            flow_px = flow.mean_px(*silhouette.projected(global_posed, *camera))
+    if silhouette is not None:
+        surface_uv, surface_depth = silhouette.projected(global_posed, *camera)
+        silhouette_px = silhouette.mean_distances_px(surface_uv)
+        if flow is not None:
+            flow_px = flow.mean_px(surface_uv, surface_depth)
             if np.isfinite(flow_px):  # NaN when no point saw reliable flow
                 silhouette_px["flow_px"] = flow_px
     return LandmarkFit(local.numpy(), params.translation.detach().numpy(), residual, x_world.numpy(), offsets.numpy(),

@@ -2,6 +2,7 @@
 
     target = SilhouetteTarget.of(masks, rest_vertices, skinning_weights, rest_joints, points=600)
     loss = target.loss_px(global_posed, K, w2c, coverage_weight=0.0)  # robust mean px outside the masks
+    loss = target.loss_at(uv, coverage_weight=0.0)   # the same, at pixels already projected
 
 Landmarks place a body's joints but say little about where its flesh is: in a side view the
 hips' and shoulders' landmarks sit somewhere inside the torso, and the fit then puts the torso a
@@ -31,6 +32,7 @@ import cv2
 import numpy as np
 import torch
 
+from igavatar.body.image_maps import frame_px_grid, huber_px, shrunk_size
 from igavatar.body.rotations import rigid_matrix
 from igavatar.body.skeleton import linear_blend_skinning
 
@@ -112,17 +114,18 @@ class SilhouetteTarget:
 
     def distances_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                      coverage: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(outside (N, S), uncovered (N, C) or None), in px:
+        """distances_at the posed surface points' pixels (projected)."""
+        return self.distances_at(self.projected(global_posed, K, w2c)[0], coverage)
+
+    def distances_at(self, uv: torch.Tensor, coverage: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(outside (N, S), uncovered (N, C) or None), in px, of the surface points at pixels uv (N, S, 2):
         - outside: each posed surface point's distance beyond its frame's mask;
         - uncovered: each point of the mask's outline's distance to the nearest body point, less a
           margin for clothes (it keeps the body from shrinking away from the outline, e.g. by
           moving off in depth)."""
-        uv, _ = self.projected(global_posed, K, w2c)
         height, width = self.outside_distance.shape[-2:]
-        # Pixel centres at integers; grid_sample's align_corners=True maps -1..1 onto 0..size-1. A
-        # point beyond the image reads the border's distance (the person is checked to be in frame).
-        map_uv = (uv + 0.5) / self.map_scale - 0.5
-        grid = torch.stack((2 * map_uv[..., 0] / (width - 1) - 1, 2 * map_uv[..., 1] / (height - 1) - 1), dim=-1)
+        # A point beyond the image reads the border's distance (the person is checked to be in frame).
+        grid = frame_px_grid(uv, self.map_scale, height, width)
         outside = torch.nn.functional.grid_sample(self.outside_distance, grid[:, None].to(self.outside_distance.dtype),
                                                   mode="bilinear", padding_mode="border",
                                                   align_corners=True)[:, 0, 0].to(uv.dtype)
@@ -137,17 +140,23 @@ class SilhouetteTarget:
 
     def loss_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                 coverage_weight: float) -> torch.Tensor:
-        """Mean robust outside + coverage_weight x mean robust uncovered distance (distances_px)."""
-        outside, uncovered = self.distances_px(global_posed, K, w2c, coverage_weight > 0)
-        loss = self._mean(_huber(outside))
+        """loss_at the posed surface points' pixels (projected)."""
+        return self.loss_at(self.projected(global_posed, K, w2c)[0], coverage_weight)
+
+    def loss_at(self, uv: torch.Tensor, coverage_weight: float) -> torch.Tensor:
+        """Mean robust outside + coverage_weight x mean robust uncovered distance (distances_at) of
+        the surface points at pixels uv (N, S, 2)."""
+        outside, uncovered = self.distances_at(uv, coverage_weight > 0)
+        loss = self._mean(huber_px(outside, HUBER_PX))
         if uncovered is not None:
-            loss = loss + coverage_weight * self._mean(_huber(uncovered))
+            loss = loss + coverage_weight * self._mean(huber_px(uncovered, HUBER_PX))
         return loss
 
-    def mean_distances_px(self, global_posed: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> dict[str, float]:
-        """For the record: the mean outside and uncovered distances (px) over frames with a mask."""
+    def mean_distances_px(self, uv: torch.Tensor) -> dict[str, float]:
+        """For the record: the mean outside and uncovered distances (px) over frames with a mask, of
+        the surface points at pixels uv (N, S, 2)."""
         with torch.no_grad():
-            outside, uncovered = self.distances_px(global_posed, K, w2c)
+            outside, uncovered = self.distances_at(uv)
             return {"outside_px": float(self._mean(outside)), "uncovered_px": float(self._mean(uncovered))}
 
     def _mean(self, per_point: torch.Tensor) -> torch.Tensor:
@@ -159,18 +168,12 @@ class SilhouetteTarget:
 def _distance_maps(inside: np.ndarray) -> tuple[np.ndarray, float]:
     """(N, h, w) float32 distances in frame px to each mask (N, H, W) bool, and the frame px per
     map px (the maps shrunk to at most DISTANCE_MAP_SIDE on a side)."""
-    height, width = inside.shape[1:]
-    scale = max(1.0, max(height, width) / DISTANCE_MAP_SIDE)
-    size = (max(1, round(width / scale)), max(1, round(height / scale)))
+    scale, size = shrunk_size(*inside.shape[1:], DISTANCE_MAP_SIDE)
     maps = []
     for mask in inside:
         small = mask if scale == 1.0 else cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5
         maps.append(cv2.distanceTransform((~small).astype(np.uint8), cv2.DIST_L2, 5) * np.float32(scale))
     return np.stack(maps).astype(np.float32), float(scale)
-
-
-def _huber(distance_px: torch.Tensor) -> torch.Tensor:
-    return torch.where(distance_px < HUBER_PX, 0.5 * distance_px**2 / HUBER_PX, distance_px - 0.5 * HUBER_PX)
 
 
 def contour_points(mask: np.ndarray, count: int) -> np.ndarray:
