@@ -106,8 +106,10 @@ def train(
              "\\[default: the preset's: on].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
-        help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features "
-             "\\[default: the preset's: off].")] = None,
+        help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features. "
+             "Without it bold stripes get carved into the surface and a real capture's clothes blur into one colour; "
+             "--no-color-grid is the paper's network, a little better on plain clothes "
+             "\\[default: the preset's: cpu on, paper off].")] = None,
     error_sampling: Annotated[Optional[float], typer.Option(
         help="Share of the subject's ray patches, and of the frame draws, sent where a running map of the colour "
              "error is highest (Instant-NGP's error map) instead of uniformly; 0 is uniform "

@@ -58,7 +58,7 @@ class TrainOptions:
     decoupled_color: bool = False
     #: False: the colour loss does not reach the compositing weights (the geometry); None: the preset's.
     color_shapes_geometry: bool | None = None
-    #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (none).
+    #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
     error_sampling: float | None = None

@@ -88,7 +88,11 @@ def test_decoupled_color_sets_the_four_options_and_each_can_be_overridden(tmp_pa
         color = config.avatar.color
         return color.hash_grid is not None, color.feature_gradient, color.normal_gradient, config.color_shapes_geometry
 
-    assert resolved() == (False, True, True, True)  # the paper's coupling
+    assert resolved() == (True, True, True, True)  # the cpu preset: a colour grid, otherwise the paper's coupling
+    assert resolved(color_grid=False) == (False, True, True, True)  # the paper's coupling
     assert resolved(decoupled_color=True) == (True, False, False, False)
     assert resolved(decoupled_color=True, color_normal_gradient=True) == (True, False, True, False)
-    assert resolved(color_shapes_geometry=False) == (False, True, True, False)
+    assert resolved(decoupled_color=True, color_grid=False) == (False, False, False, False)
+    assert resolved(color_shapes_geometry=False) == (True, True, True, False)
+    paper = resolve_config(TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset="paper"))
+    assert paper.avatar.color.hash_grid is None  # the paper preset keeps the official network

@@ -188,8 +188,15 @@ class TrainConfig:
 def _cpu_avatar() -> AvatarConfig:
     # beta starts at 2 cm: the official 7.5 cm blurs every silhouette by several centimeters, and
     # in a short run the forearms and hands fade in the first 50 steps and never come back.
+    # The colour field has a hash grid of its own (the official code reads the SDF's features
+    # only): without it, bold stripes were carved into the surface (issue 36; bold CD-L1 5.1 ->
+    # 4.2 mm, NC 0.88 -> 0.95) and a real capture rendered as one olive figure (ZJU-MoCap 377:
+    # vest, skin and shoes recognisable with it, +0.4 dB). It costs the plain heavy body 0.04-0.6 mm
+    # CD-L1 (tests/benchmarks/results/color-grid-default.md).
+    sdf = SDFFieldConfig(hash_grid=HashGridConfig(n_levels=12, log2_hashmap_size=17, base_resolution=16, finest_resolution=1024))
     return AvatarConfig(
-        sdf=SDFFieldConfig(hash_grid=HashGridConfig(n_levels=12, log2_hashmap_size=17, base_resolution=16, finest_resolution=1024)),
+        sdf=sdf,
+        color=ColorFieldConfig(hash_grid=color_grid_config(sdf.hash_grid)),
         density=LaplaceDensityConfig(beta_init=0.02),
         deformer=DeformerConfig(init_top_k=2),
     )

@@ -1,4 +1,4 @@
-"""Step time of the colour options side by side: the paper's coupling against the decoupled colour.
+"""Step time of the colour options side by side: the paper's colour network against the colour grids.
 
     python tests/benchmarks/bench_color_step.py --dataset RUN/dataset [--rounds 5] [--steps 15]
 
@@ -6,7 +6,8 @@ One process builds a trainer per variant on the dataset (the `cpu` preset, no sh
 started at step 400 so the non-rigid offset is on), warms each up for 5 steps, then times
 `--steps` steps of each in turn for `--rounds` rounds (round-robin, so the machine's noise falls
 on all of them alike) and reports the median ms per step and its ratio to the paper's coupling.
-Variants: `paper` (the preset), `decoupled` (colour grid of config.color_grid_config, SDF features
+Variants: `paper` (the preset without its colour grid: the official network), `cpu-default` (the
+preset: the colour grid of config.color_grid_config, the paper's coupling), `decoupled` (colour grid of config.color_grid_config, SDF features
 and normal detached, colour on fixed weights), `grid-detached` (the same with the weights coupled),
 `decoupled-grid12` (decoupled with a copy of the SDF's grid). Writes results/color-step.md and .json with the commit and the command.
 """
@@ -53,7 +54,9 @@ def main() -> None:
     data = training_data(dataset)
     base = dataclasses.replace(preset("cpu"), steps=800, shape_init_steps=0)
     sdf_grid = base.avatar.sdf.hash_grid
-    variants = {"paper": base, "decoupled": decoupled(base, color_grid_config(sdf_grid)),
+    paper = dataclasses.replace(base, avatar=dataclasses.replace(
+        base.avatar, color=dataclasses.replace(base.avatar.color, hash_grid=None)))
+    variants = {"paper": paper, "cpu-default": base, "decoupled": decoupled(base, color_grid_config(sdf_grid)),
                 "grid-detached": decoupled(base, color_grid_config(sdf_grid), fixed_weights=False),
                 "decoupled-grid12": decoupled(base, sdf_grid)}
     trainers = {}
