@@ -27,7 +27,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
                          "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_shapes_geometry",
-                         "color_grid",
+                         "color_weights_gradient", "color_grid",
                          "error_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
@@ -104,6 +104,10 @@ def train(
         help="Let the colour loss move the surface through the volume-rendering weights (the paper); "
              "--no-color-shapes-geometry leaves the shape to the masks, priors and regularizers "
              "\\[default: the preset's: on].")] = None,
+    color_weights_gradient: Annotated[Optional[float], typer.Option(
+        help="Scale in [0, 1] of what the colour loss passes to the surface through the volume-rendering weights "
+             "(1: the paper; 0: as --no-color-shapes-geometry); the colours still get their whole gradient "
+             "\\[default: the preset's: 1].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
         help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features. "
@@ -129,6 +133,7 @@ def train(
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient, color_grid=color_grid,
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
+        color_weights_gradient=color_weights_gradient,
         decoupled_color=decoupled_color,
         error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),

@@ -58,6 +58,8 @@ class TrainOptions:
     decoupled_color: bool = False
     #: False: the colour loss does not reach the compositing weights (the geometry); None: the preset's.
     color_shapes_geometry: bool | None = None
+    #: Scale in [0, 1] of the colour loss's gradient through the weights; None: the preset's (1).
+    color_weights_gradient: float | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
@@ -111,6 +113,10 @@ def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
     shapes = given(options.color_shapes_geometry, False)
     if shapes is not None:
         config = dataclasses.replace(config, color_shapes_geometry=shapes)
+    if options.color_weights_gradient is not None:
+        if not 0.0 <= options.color_weights_gradient <= 1.0:
+            raise InputError(f"--color-weights-gradient {options.color_weights_gradient}: expected a scale in [0, 1]")
+        config = dataclasses.replace(config, color_weights_gradient=options.color_weights_gradient)
     color = config.avatar.color
     grid, features, normal = (given(options.color_grid, True), given(options.color_feature_gradient, False),
                               given(options.color_normal_gradient, False))

@@ -120,6 +120,15 @@ class RenderOutput:
         weights = self.weights.detach()
         return (weights[..., None] * self.sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
 
+    def rgb_with_weights_gradient(self, background: Tensor, scale: float) -> Tensor:
+        """(R, 3) the same composite as `rgb`, through which a loss reaches the colours in full and
+        the weights (the geometry) scaled by `scale` in [0, 1]: 1 is `rgb`, 0 `rgb_on_fixed_weights`.
+        fixed + scale (rgb - fixed): the difference is zero in value and in its colour gradient."""
+        if scale == 1.0:
+            return self.rgb
+        fixed = self.rgb_on_fixed_weights(background)
+        return fixed if scale == 0.0 else fixed + scale * (self.rgb - fixed)
+
 
 def _scatter(values: Tensor, mask: Tensor) -> Tensor:
     """Place (M, ...) values at the True slots of mask (R, S) in a zero (R, S, ...) tensor, differentiably."""

@@ -64,6 +64,10 @@ class TrainConfig:
     """Whether the colour loss reaches the compositing weights, and so the geometry (VolSDF, the
     paper). False composites the colour on weights held fixed for that loss: the surface is then
     shaped by the masks, the priors and the regularizers, and colour only paints it (issue 36)."""
+    color_weights_gradient: float = 1.0
+    """With color_shapes_geometry, the scale in [0, 1] of the colour loss's gradient through the
+    compositing weights (1: VolSDF, the paper): below 1 the images still help shape the surface,
+    with less pull to carve sharp colour features (a face's eyes and mouth) into it."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2

@@ -311,7 +311,7 @@ class Trainer:
         out = render_rays(canonical_samples, field_fn, background)
         if self.error_map is not None:
             self.error_map.record(index, pixels, (out.rgb.detach() - target).abs().mean(dim=-1))
-        rendered = out.rgb if config.color_shapes_geometry else out.rgb_on_fixed_weights(background)
+        rendered = out.rgb_with_weights_gradient(background, config.color_weights_gradient if config.color_shapes_geometry else 0.0)
         terms = {"rgb": rgb_loss(rendered, target), "alpha": alpha_loss(out.opacity, target_mask)}
         terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
