@@ -107,7 +107,7 @@ def train(
     color_weights_gradient: Annotated[Optional[float], typer.Option(
         help="Scale in [0, 1] of what the colour loss passes to the surface through the volume-rendering weights "
              "(1: the paper; 0: as --no-color-shapes-geometry); the colours still get their whole gradient "
-             "\\[default: the preset's: 1].")] = None,
+             "\\[default: the preset's: cpu 0.3, paper and tiny 1].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
         help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features. "

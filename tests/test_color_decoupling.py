@@ -136,10 +136,13 @@ def test_the_weights_gradient_option_is_checked_and_reaches_the_config(tmp_path)
     from igavatar.errors import InputError
     from stages.train import TrainOptions, resolve_config
 
-    def options(**extra):
-        return TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset="cpu", **extra)
+    def options(preset="cpu", **extra):
+        return TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset=preset, **extra)
 
-    assert resolve_config(options()).color_weights_gradient == 1.0
+    # The cpu preset passes 0.3 of it (measured, color-weights-gradient.md); the paper's preset all of it.
+    assert resolve_config(options()).color_weights_gradient == 0.3
+    assert resolve_config(options("paper")).color_weights_gradient == 1.0
+    assert resolve_config(options(color_weights_gradient=1.0)).color_weights_gradient == 1.0
     assert resolve_config(options(color_weights_gradient=0.25)).color_weights_gradient == 0.25
     with pytest.raises(InputError, match="--color-weights-gradient 1.5"):
         resolve_config(options(color_weights_gradient=1.5))
