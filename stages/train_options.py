@@ -58,7 +58,7 @@ class TrainOptions:
     decoupled_color: bool = False
     #: False: the colour loss does not reach the compositing weights (the geometry); None: the preset's.
     color_shapes_geometry: bool | None = None
-    #: Scale in [0, 1] of the colour loss's gradient through the weights; None: the preset's (1).
+    #: Scale in [0, 1] of the colour loss's gradient through the weights; None: the preset's (cpu 0.3, paper 1).
     color_weights_gradient: float | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
