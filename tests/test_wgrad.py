@@ -2,7 +2,8 @@
 
 ``outer_sum(a, b, out, a_sums, b_sums)`` computes a^T b and the column sums; ``weight_gradients``
 dispatches each layer shape to it (either orientation) or to oneDNN, and must equal
-``weight_gradients_reference`` to float32 rounding.
+``weight_gradients_reference`` to float32 rounding. Every ISA copy the CPU runs (``copies()``) is
+checked, not only the one it dispatches to.
 """
 
 from __future__ import annotations
@@ -30,8 +31,10 @@ def _reference(a: np.ndarray, b: np.ndarray):
 
 # Rows: fewer than one block, one block, not a multiple of the block, several blocks per thread.
 # Columns of b: every 16-multiple tail (16, 32, 48) after 64-wide slabs; rows of out: 1-3 left over.
-@pytest.mark.parametrize(("rows", "m", "n"), [(1, 1, 16), (5, 3, 32), (128, 4, 48), (300, 7, 64), (1000, 39, 128),
-                                              (2049, 130, 80), (0, 5, 16)])
+SHAPES = [(1, 1, 16), (5, 3, 32), (128, 4, 48), (300, 7, 64), (1000, 39, 128), (2049, 130, 80), (0, 5, 16)]
+
+
+@pytest.mark.parametrize(("rows", "m", "n"), SHAPES)
 def test_outer_sum_equals_float64_products_and_sums(wgrad, rows, m, n):
     generator = np.random.default_rng(rows + m + n)
     a = generator.standard_normal((rows, m)).astype(np.float32)
@@ -45,6 +48,33 @@ def test_outer_sum_equals_float64_products_and_sums(wgrad, rows, m, n):
     # The column sums are accumulated in double: only the final rounding to float32 is left.
     np.testing.assert_allclose(a_sums, want_a, rtol=2e-7, atol=1e-6)
     np.testing.assert_allclose(b_sums, want_b, rtol=2e-7, atol=1e-6)
+
+
+def test_every_isa_copy_this_cpu_runs_equals_float64_products(wgrad):
+    # One copy per register file (AVX-512, AVX2, plain): each has its own vector width and tiles, and
+    # the default is the fastest this CPU runs. Copies the CPU lacks are refused, not run.
+    copies = wgrad.copies()
+    assert copies[-1] == "base" and set(copies) <= {"avx512", "avx2", "base"}
+    for rows, m, n in SHAPES:
+        generator = np.random.default_rng(7 * rows + m + n)
+        a = generator.standard_normal((rows, m)).astype(np.float32)
+        b = generator.standard_normal((rows, n)).astype(np.float32)
+        want, want_a, want_b = _reference(a, b)
+        default = np.empty((m, n), np.float32)
+        wgrad.outer_sum(a, b, default, np.empty(0, np.float32), np.empty(0, np.float32))
+        for copy in copies:
+            out = np.full((m, n), np.nan, np.float32)
+            a_sums, b_sums = np.full(m, np.nan, np.float32), np.full(n, np.nan, np.float32)
+            wgrad.outer_sum(a, b, out, a_sums, b_sums, copy)
+            np.testing.assert_allclose(out, want, rtol=0, atol=8e-6 * max(1.0, np.sqrt(rows)), err_msg=copy)
+            np.testing.assert_allclose(a_sums, want_a, rtol=2e-7, atol=1e-6, err_msg=copy)
+            np.testing.assert_allclose(b_sums, want_b, rtol=2e-7, atol=1e-6, err_msg=copy)
+            if copy == copies[0]:
+                np.testing.assert_array_equal(out, default)
+    for missing in {"avx512", "avx2"} - set(copies):
+        with pytest.raises(ValueError, match="does not run on this CPU"):
+            wgrad.outer_sum(np.zeros((4, 1), np.float32), np.zeros((4, 16), np.float32), np.zeros((1, 16), np.float32),
+                            np.empty(0, np.float32), np.empty(0, np.float32), missing)
 
 
 def test_column_sums_stay_exact_when_the_running_sum_is_large(wgrad):

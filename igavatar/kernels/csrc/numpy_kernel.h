@@ -22,6 +22,16 @@
 #define IGA_CLONES
 #endif
 
+// Single-ISA targets for kernels that keep one hand-sized copy per register file (wgrad.cpp), chosen
+// at run time with __builtin_cpu_supports; undefined where there is no such choice (not x86-64 GCC).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
+#define IGA_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
+#define IGA_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
+#elif defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define IGA_TARGET_V4 __attribute__((target("avx512f")))
+#define IGA_TARGET_V3 __attribute__((target("avx2,fma")))
+#endif
+
 namespace iga {
 
 namespace py = pybind11;
