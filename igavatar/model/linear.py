@@ -14,7 +14,8 @@ The fast path runs the forward product and the input gradient on oneDNN (``torch
 _linear_pointwise``, the op torch's own compiler emits for CPU linear layers) and the weight and
 bias gradients on the ``wgrad`` kernel (``igavatar/kernels/csrc/wgrad.cpp``: ``grad^T x`` read
 straight from the two row-major (P, .) arrays, 1.7-4x faster than oneDNN's inner-product backward,
-which first copies both into its own layout). Layers with neither side a multiple of 16, or
+which first copies both into its own layout; one copy per ISA, sized to its registers, chosen on
+the CPU's features). Layers with neither side a multiple of 16, or
 without the kernel built, use that oneDNN backward (``aten::mkldnn_linear_backward_weights``).
 It is used when
 `kernels_enabled()`, for 2-D float32 CPU inputs, and when this torch build has the op; otherwise,
