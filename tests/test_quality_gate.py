@@ -11,8 +11,9 @@ training seeds 0, 1, 2 at commit 107baba on 2 CPU cores): IoU 0.908 / 0.903 / 0.
 CD-L1 4.20 / 4.54 / 4.05 mm, NC (surface) 0.961 / 0.956 / 0.961, leg-gap web 0 / 0.05 / 0. With the
 colour grid in the preset (issue 36, the commit that made it the default): IoU 0.912 / 0.900 / 0.916, CD-L1 3.94 / 4.57 / 3.80 mm,
 NC 0.964 / 0.961 / 0.964, web 0 / 0.05 / 0. With 0.3 of the colour's pull through the weights
-(`color_weights_gradient`, commit 29b5984), seed 0: IoU 0.911, CD-L1 4.01 mm, NC 0.964, web 0
-(seeds 1 and 2 not rerun). Each floor
+(`color_weights_gradient`, commit 29b5984), seed 0: IoU 0.911, CD-L1 4.01 mm, NC 0.964, web 0; seeds 1
+and 2 (commit c11d08c, the same training code): IoU 0.910 / 0.917, CD-L1 4.00 / 3.67 mm, NC 0.963 / 0.965,
+web 0 / 0. Each floor
 sits about five seed spreads from the mean, so noise does not trip it; the cpu preset as it was
 before the geometry work (`KNOWN_BAD`: beta 7.5 cm -> 3 mm, Eq. 9 smoothness, no hull or body
 priors) measured IoU 0.824, CD-L1 8.37 mm, NC 0.927, web 0.19 and a missing right hand, failing
