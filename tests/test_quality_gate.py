@@ -1,10 +1,10 @@
 """The quality gate: a small synthetic subject trained at the cpu preset must come out whole.
 
 Every other training test runs a few steps of the `tiny` preset, so a change that loses the hands
-or the forearms again would pass them all. This one trains for real (about 75 s on 2 cores, with
-the Anny model cached by the other tests) and checks the canonical shape against the subject's
-true clothed surface: every limb is there, the legs are not webbed, and IoU, CD-L1 and surface
-normal consistency are inside floors.
+or the forearms again would pass them all. This one trains for real (about 75 s on 2 cores with
+AVX-512, about 3 min with AVX2 only; the Anny model cached by the other tests) and checks the
+canonical shape against the subject's true clothed surface: every limb is there, the legs are not
+webbed, and IoU, CD-L1 and surface normal consistency are inside floors.
 
 Floors, from the measured values at this setting (192 px, 30 frames, 500 steps, synthetic seed 0;
 training seeds 0, 1, 2 at commit 107baba on 2 CPU cores): IoU 0.908 / 0.903 / 0.908,

@@ -9,7 +9,7 @@
 // weight-gradient primitive (igavatar/model/linear.py) first converts both (P, .) operands into
 // its layout, a full copy of each through memory on every call; here the rows are read where
 // they lie. Why this is fast: every row p adds an outer product, so a tile of R rows of `out` by
-// 16 V columns lives in R * V vector registers while p runs over a block of rows whose B slice
+// L * NV columns (L floats a vector) lives in R * NV vector registers while p runs over a block of rows whose B slice
 // stays in L1; each B vector loaded feeds R fused multiply-adds. The rows are split between
 // threads, each with its own partial sums, added in thread order: deterministic for a given
 // thread count. Each row block's partial tile starts from zero and is then added to the total,
@@ -44,9 +44,10 @@ using Floats = py::array_t<float, py::array::c_style>;
 
 namespace {
 
-// Vectors of 16, 8 and 4 floats, each one register of AVX-512, AVX2 and SSE / NEON. Each ISA gets its own type: GCC keeps a vector wider than the
-// target's registers (16 floats under AVX2) on the stack and moves it through general registers
-// piece by piece, which ran 10-20x slower than torch's own product on an AVX2-only EPYC.
+// Vectors of 16, 8 and 4 floats, each one register of AVX-512, AVX2 and SSE / NEON. Each ISA gets
+// its own type: GCC keeps a vector wider than the target's registers (16 floats under AVX2) on the
+// stack and moves it through general registers piece by piece, which ran 10-20x slower than
+// torch's own product on an AVX2-only EPYC (tests/benchmarks/results/wgrad-avx2.md).
 typedef float Vec16 __attribute__((vector_size(64)));
 typedef float Vec8 __attribute__((vector_size(32)));
 typedef float Vec4 __attribute__((vector_size(16)));
