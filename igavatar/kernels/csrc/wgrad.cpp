@@ -9,8 +9,8 @@
 // weight-gradient primitive (igavatar/model/linear.py) first converts both (P, .) operands into
 // its layout, a full copy of each through memory on every call; here the rows are read where
 // they lie. Why this is fast: every row p adds an outer product, so a tile of R rows of `out` by
-// L * NV columns (L floats a vector) lives in R * NV vector registers while p runs over a block of rows whose B slice
-// stays in L1; each B vector loaded feeds R fused multiply-adds. The rows are split between
+// L * NV columns (L floats a vector) lives in R * NV vector registers while p runs over a block of
+// rows whose B slice stays in L1; each B vector loaded feeds R fused multiply-adds. The rows are split between
 // threads, each with its own partial sums, added in thread order: deterministic for a given
 // thread count. Each row block's partial tile starts from zero and is then added to the total,
 // a two-level sum that keeps the float32 rounding of a 20k-row reduction small.
