@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
 from provenance import command, commit  # noqa: E402
 
@@ -66,7 +67,6 @@ def cpu_features() -> str:
 
 def step_shapes(dataset_path: Path) -> list[tuple[int, int, int]]:
     """(rows, in, out) of every weight gradient one `cpu`-preset step computes."""
-    sys.path.insert(0, str(ROOT))
     from igavatar.avatar.dataset import read_dataset, training_data
     from igavatar.avatar.model import build_avatar
     from igavatar.model import linear as linear_module

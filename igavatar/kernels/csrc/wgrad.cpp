@@ -170,22 +170,26 @@ IGA_TARGET_V3 void outer_sum_rows_v3(const float* a, const float* b, int64_t M, 
 }
 #endif
 
-// The copies this CPU can run, by name, the fastest first (never chosen on the CPU's model).
-std::vector<std::pair<std::string, RowsFn>> runnable_copies() {
-  std::vector<std::pair<std::string, RowsFn>> copies;
+// The copies this CPU can run, by name, the fastest first (never chosen on the CPU's model); found
+// once.
+const std::vector<std::pair<std::string, RowsFn>>& runnable_copies() {
+  static const auto copies = [] {
+    std::vector<std::pair<std::string, RowsFn>> found;
 #if defined(IGA_TARGET_V4)
-  __builtin_cpu_init();
-  const bool v3 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  if (v3 && __builtin_cpu_supports("avx512f")) copies.emplace_back("avx512", outer_sum_rows_v4);
-  if (v3) copies.emplace_back("avx2", outer_sum_rows_v3);
+    __builtin_cpu_init();
+    const bool v3 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+    if (v3 && __builtin_cpu_supports("avx512f")) found.emplace_back("avx512", outer_sum_rows_v4);
+    if (v3) found.emplace_back("avx2", outer_sum_rows_v3);
 #endif
-  copies.emplace_back("base", outer_sum_rows_base);
+    found.emplace_back("base", outer_sum_rows_base);
+    return found;
+  }();
   return copies;
 }
 
 // The named copy ("" = the fastest this CPU runs); invalid_argument for one it cannot run.
 RowsFn rows_copy(const std::string& name) {
-  static const auto copies = runnable_copies();
+  const auto& copies = runnable_copies();
   if (name.empty()) return copies.front().second;
   for (const auto& [copy_name, fn] : copies)
     if (copy_name == name) return fn;
