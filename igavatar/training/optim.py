@@ -76,7 +76,9 @@ class SparseAdam(torch.optim.Optimizer):
         if closure is not None:
             with torch.enable_grad():
                 loss = closure()
-        kernel = load_kernel("sparseadam") if kernels_enabled() else None
+        # Loaded only when a CPU tensor can use it: a CUDA run never builds the CPU kernel.
+        on_cpu = any(_kernel_applies(p) for g in self.param_groups for p in g["params"] if p.grad is not None)
+        kernel = load_kernel("sparseadam") if on_cpu and kernels_enabled() else None
         for group in self.param_groups:
             for param in group["params"]:
                 if param.grad is None:
