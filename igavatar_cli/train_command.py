@@ -27,7 +27,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
                          "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_shapes_geometry",
-                         "color_weights_gradient", "color_grid",
+                         "color_weights_gradient", "color_weights_outline_px", "color_grid",
                          "error_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
@@ -108,6 +108,10 @@ def train(
         help="Scale in [0, 1] of what the colour loss passes to the surface through the volume-rendering weights "
              "(1: the paper; 0: as --no-color-shapes-geometry); the colours still get their whole gradient "
              "\\[default: the preset's: cpu 0.3, paper and tiny 1].")] = None,
+    color_weights_outline_px: Annotated[Optional[int], typer.Option(
+        help="Pixels from the mask's outline within which the colour loss passes its whole gradient through the "
+             "weights; elsewhere --color-weights-gradient applies. The images then shape the silhouette without "
+             "carving a pattern inside it (with --color-weights-gradient 0) \\[default: the preset's: 0, off].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
         help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features. "
@@ -133,7 +137,7 @@ def train(
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient, color_grid=color_grid,
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
-        color_weights_gradient=color_weights_gradient,
+        color_weights_gradient=color_weights_gradient, color_weights_outline_px=color_weights_outline_px,
         decoupled_color=decoupled_color,
         error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),

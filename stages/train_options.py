@@ -60,6 +60,8 @@ class TrainOptions:
     color_shapes_geometry: bool | None = None
     #: Scale in [0, 1] of the colour loss's gradient through the weights; None: the preset's (cpu 0.3, paper 1).
     color_weights_gradient: float | None = None
+    #: Pixels from the mask's outline within which the weights get the colour's whole gradient; None: the preset's (0: off).
+    color_weights_outline_px: int | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
@@ -117,6 +119,10 @@ def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
         if not 0.0 <= options.color_weights_gradient <= 1.0:
             raise InputError(f"--color-weights-gradient {options.color_weights_gradient}: expected a scale in [0, 1]")
         config = dataclasses.replace(config, color_weights_gradient=options.color_weights_gradient)
+    if options.color_weights_outline_px is not None:
+        if not 0 <= options.color_weights_outline_px <= 64:
+            raise InputError(f"--color-weights-outline-px {options.color_weights_outline_px}: expected pixels in [0, 64] (0: off)")
+        config = dataclasses.replace(config, color_weights_outline_px=options.color_weights_outline_px)
     color = config.avatar.color
     grid, features, normal = (given(options.color_grid, True), given(options.color_feature_gradient, False),
                               given(options.color_normal_gradient, False))

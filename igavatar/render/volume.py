@@ -120,10 +120,14 @@ class RenderOutput:
         weights = self.weights.detach()
         return (weights[..., None] * self.sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
 
-    def rgb_with_weights_gradient(self, background: Tensor, scale: float) -> Tensor:
+    def rgb_with_weights_gradient(self, background: Tensor, scale: float | Tensor) -> Tensor:
         """(R, 3) the same composite as `rgb`, through which a loss reaches the colours in full and
         the weights (the geometry) scaled by `scale` in [0, 1]: 1 is `rgb`, 0 `rgb_on_fixed_weights`.
+        `scale` is one number, or (R,) one per ray (igavatar.training.outline).
         fixed + scale (rgb - fixed): the difference is zero in value and in its colour gradient."""
+        if isinstance(scale, Tensor):
+            fixed = self.rgb_on_fixed_weights(background)
+            return fixed + scale.to(fixed)[:, None] * (self.rgb - fixed)
         if scale == 1.0:
             return self.rgb
         fixed = self.rgb_on_fixed_weights(background)

@@ -68,6 +68,11 @@ class TrainConfig:
     """With color_shapes_geometry, the scale in [0, 1] of the colour loss's gradient through the
     compositing weights (1: VolSDF, the paper): below 1 the images still help shape the surface,
     with less pull to carve sharp colour features (a face's eyes and mouth) into it."""
+    color_weights_outline_px: int = 0
+    """With color_shapes_geometry, rays within this many pixels of the mask's outline pass the colour
+    loss's whole gradient through the weights, and the others `color_weights_gradient`: the images
+    shape the silhouette, and a pattern inside it is not carved (0: `color_weights_gradient` on
+    every ray)."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2

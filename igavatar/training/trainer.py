@@ -42,6 +42,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
+from igavatar.training.outline import outline_band, weights_gradient_scale
 from igavatar.training.error_map import ErrorMap
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
@@ -254,6 +255,17 @@ class Trainer:
             return self.error_map.draw_frame(frames, self.generator, self.config.error_sampling)
         return int(frames[torch.randint(0, len(frames), (1,), generator=self.generator)])
 
+    def _weights_gradient_scale(self, index: int, pixels: torch.Tensor) -> float | torch.Tensor:
+        """The colour loss's share through the compositing weights: one number, or (R,) per ray
+        when the outline band is on (igavatar.training.outline)."""
+        config = self.config
+        if not config.color_shapes_geometry:
+            return 0.0
+        if config.color_weights_outline_px <= 0:
+            return config.color_weights_gradient
+        band = outline_band(self.data.masks[index], config.color_weights_outline_px)
+        return weights_gradient_scale(band, pixels, config.color_weights_gradient).to(self.device)
+
     def _draw_pixels(self, index: int) -> torch.Tensor:
         """The step's patch pixels (P, 2) of frame `index`; some centres steered by the error map."""
         config = self.config
@@ -311,7 +323,7 @@ class Trainer:
         out = render_rays(canonical_samples, field_fn, background)
         if self.error_map is not None:
             self.error_map.record(index, pixels, (out.rgb.detach() - target).abs().mean(dim=-1))
-        rendered = out.rgb_with_weights_gradient(background, config.color_weights_gradient if config.color_shapes_geometry else 0.0)
+        rendered = out.rgb_with_weights_gradient(background, self._weights_gradient_scale(index, pixels))
         terms = {"rgb": rgb_loss(rendered, target), "alpha": alpha_loss(out.opacity, target_mask)}
         terms.update(self._regularizer_terms(out, canonical_samples, x_rigid, posed.pose_condition))
         if self.hull is not None and config.loss_weights.free_space > 0:
