@@ -1,0 +1,114 @@
+"""The colour's pull on the surface only near the mask's outline (`--color-weights-outline-px`):
+the band is where it should be, each ray gets its scale, and the trainer passes it on."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from igavatar.render.volume import RenderOutput
+from igavatar.training.outline import outline_band, weights_gradient_scale
+
+
+def _chebyshev_to_outline(mask: torch.Tensor) -> torch.Tensor:
+    """(H, W) the brute-force reference: each pixel's Chebyshev distance to the nearest pixel of the
+    other class (inside: to the background; outside: to the person)."""
+    ys, xs = torch.meshgrid(torch.arange(mask.shape[0]), torch.arange(mask.shape[1]), indexing="ij")
+    yx = torch.stack([ys.flatten(), xs.flatten()], dim=1)
+    flat = mask.flatten()
+    gap = (yx[:, None, :] - yx[None, :, :]).abs().amax(dim=-1)          # (P, P) Chebyshev
+    other = flat[:, None] != flat[None, :]
+    return torch.where(other, gap, torch.full_like(gap, 10**6)).amin(dim=1).reshape(mask.shape)
+
+
+@pytest.mark.parametrize("width", [1, 2, 3])
+def test_the_band_holds_the_pixels_within_its_width_of_the_outline_on_both_sides(width):
+    """A disc and a notched square: a pixel is on the band exactly when the other class lies within
+    `width` pixels of it (the brute-force distance above)."""
+    ys, xs = torch.meshgrid(torch.arange(24), torch.arange(24), indexing="ij")
+    disc = (ys - 11.5) ** 2 + (xs - 11.5) ** 2 < 7.5 ** 2
+    square = (ys >= 5) & (ys < 19) & (xs >= 5) & (xs < 19) & ~((ys >= 10) & (ys < 13) & (xs >= 12))
+    for mask in (disc, square):
+        band = outline_band(mask, width)
+        assert torch.equal(band, _chebyshev_to_outline(mask) <= width)
+        assert band.any() and not band.all()
+    assert not outline_band(disc, 3)[11, 11]   # the disc's centre is more than 3 px inside
+
+
+def test_the_image_border_is_no_outline():
+    """A person cut by the frame's bottom edge: the rows along that edge away from the sides are not on the band."""
+    mask = torch.zeros(16, 16, dtype=torch.bool)
+    mask[6:, 4:12] = True
+    band = outline_band(mask, 2)
+    assert not band[15, 6:10].any()          # inside, on the image's edge
+    assert band[15, 4] and band[15, 2]       # the sides still are
+
+
+def test_each_ray_gets_one_on_the_band_and_the_inside_value_elsewhere():
+    band = torch.zeros(8, 8, dtype=torch.bool)
+    band[2, 5] = True
+    pixels_xy = torch.tensor([[5, 2], [2, 5], [0, 0]])
+    torch.testing.assert_close(weights_gradient_scale(band, pixels_xy, 0.25), torch.tensor([1.0, 0.25, 0.25]))
+
+
+def test_a_per_ray_scale_scales_each_rays_weights_gradient_and_keeps_the_picture():
+    """rgb_with_weights_gradient with (R,) scales: the picture and the colour gradient are `rgb`'s,
+    and each ray's weights get its own share of `rgb`'s weights gradient (one ray 0, one 1, one 0.3)."""
+    generator = torch.Generator().manual_seed(0)
+    rays, samples = 3, 6
+    raw = torch.rand(rays, samples, generator=generator) / samples
+    colours = torch.rand(rays, samples, 3, generator=generator)
+    background = torch.rand(rays, 3, generator=generator)
+    target = torch.rand(rays, 3, generator=generator)
+    scale = torch.tensor([0.0, 1.0, 0.3])
+
+    def gradients(composite):
+        weights, sample_rgb = raw.clone().requires_grad_(True), colours.clone().requires_grad_(True)
+        rgb = (weights[..., None] * sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
+        zeros = torch.zeros(rays, samples)
+        out = RenderOutput(rgb=rgb, opacity=weights.sum(dim=1), depth=zeros[:, 0], normal=torch.zeros(rays, 3),
+                           weights=weights, sigma=zeros, t=zeros, valid=zeros > 0, gradient=None, sdf=None,
+                           sample_rgb=sample_rgb)
+        picture = composite(out)
+        ((picture - target) ** 2).sum().backward()
+        return picture.detach(), weights.grad, sample_rgb.grad
+
+    full_picture, full_weights, full_colours = gradients(lambda out: out.rgb)
+    picture, weights_grad, colours_grad = gradients(lambda out: out.rgb_with_weights_gradient(background, scale))
+    torch.testing.assert_close(picture, full_picture)
+    torch.testing.assert_close(colours_grad, full_colours)
+    torch.testing.assert_close(weights_grad, scale[:, None] * full_weights)
+    assert full_weights[0].abs().sum() > 0   # the zero on ray 0 is the scale's, not the loss's
+
+
+def test_the_trainer_scales_per_ray_only_with_the_option(small_run):
+    """Off: one number (the preset's share). On: ones on the frame's outline band, the share elsewhere."""
+    from tests.test_train import _trainer
+
+    dataset = small_run / "dataset"
+    pixels = _trainer(dataset)._draw_pixels(0)
+    assert _trainer(dataset, color_weights_gradient=0.3)._weights_gradient_scale(0, pixels) == 0.3
+    assert _trainer(dataset, color_shapes_geometry=False, color_weights_outline_px=2)._weights_gradient_scale(0, pixels) == 0.0
+    trainer = _trainer(dataset, color_weights_gradient=0.0, color_weights_outline_px=1)
+    on_band = []
+    for draw in range(4):   # the tiny frames' person is a few pixels wide: several draws hold rays on and off the band
+        index = draw % len(trainer.data.masks)
+        pixels = trainer._draw_pixels(index)
+        expected = outline_band(trainer.data.masks[index], 1)[pixels[:, 1], pixels[:, 0]].float()
+        torch.testing.assert_close(trainer._weights_gradient_scale(index, pixels), expected)
+        on_band.append(expected)
+    on_band = torch.cat(on_band)
+    assert 0 < on_band.sum() < len(on_band)
+
+
+def test_the_outline_option_is_checked_and_reaches_the_config(tmp_path):
+    from igavatar.errors import InputError
+    from stages.train import TrainOptions, resolve_config
+
+    def options(**extra):
+        return TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset="cpu", **extra)
+
+    assert resolve_config(options()).color_weights_outline_px == 0
+    assert resolve_config(options(color_weights_outline_px=4)).color_weights_outline_px == 4
+    with pytest.raises(InputError, match="--color-weights-outline-px -1"):
+        resolve_config(options(color_weights_outline_px=-1))
