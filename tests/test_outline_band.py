@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from igavatar.render.volume import RenderOutput
-from igavatar.training.outline import outline_band, weights_gradient_scale
+from igavatar.training.outline import outline_band, outline_rays, weights_gradient_scale
 
 
 def _chebyshev_to_outline(mask: torch.Tensor) -> torch.Tensor:
@@ -44,11 +44,23 @@ def test_the_image_border_is_no_outline():
     assert band[15, 4] and band[15, 2]       # the sides still are
 
 
+@pytest.mark.parametrize("width", [1, 2, 4])
+def test_the_summed_area_lookup_matches_the_pooled_band_on_every_pixel(width):
+    """outline_rays (what training uses) against outline_band (the plain reference), at every pixel of
+    random blobs, one cut by the image's edges."""
+    generator = torch.Generator().manual_seed(width)
+    for _ in range(3):
+        blobs = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 40, 56, generator=generator), 9, stride=1, padding=4)[0, 0]
+        mask = blobs > blobs.median()
+        ys, xs = torch.meshgrid(torch.arange(40), torch.arange(56), indexing="ij")
+        pixels_xy = torch.stack([xs.flatten(), ys.flatten()], dim=1)
+        on_band = outline_rays(mask, pixels_xy, width)
+        assert torch.equal(on_band, outline_band(mask, width).flatten())
+        assert on_band.any() and not on_band.all()
+
+
 def test_each_ray_gets_one_on_the_band_and_the_inside_value_elsewhere():
-    band = torch.zeros(8, 8, dtype=torch.bool)
-    band[2, 5] = True
-    pixels_xy = torch.tensor([[5, 2], [2, 5], [0, 0]])
-    torch.testing.assert_close(weights_gradient_scale(band, pixels_xy, 0.25), torch.tensor([1.0, 0.25, 0.25]))
+    torch.testing.assert_close(weights_gradient_scale(torch.tensor([True, False, False]), 0.25), torch.tensor([1.0, 0.25, 0.25]))
 
 
 def test_a_per_ray_scale_scales_each_rays_weights_gradient_and_keeps_the_picture():

@@ -42,7 +42,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
-from igavatar.training.outline import outline_band, weights_gradient_scale
+from igavatar.training.outline import outline_rays, weights_gradient_scale
 from igavatar.training.error_map import ErrorMap
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
@@ -263,8 +263,8 @@ class Trainer:
             return 0.0
         if config.color_weights_outline_px <= 0:
             return config.color_weights_gradient
-        band = outline_band(self.data.masks[index], config.color_weights_outline_px)
-        return weights_gradient_scale(band, pixels, config.color_weights_gradient).to(self.device)
+        on_band = outline_rays(self.data.masks[index], pixels, config.color_weights_outline_px)
+        return weights_gradient_scale(on_band, config.color_weights_gradient).to(self.device)
 
     def _draw_pixels(self, index: int) -> torch.Tensor:
         """The step's patch pixels (P, 2) of frame `index`; some centres steered by the error map."""
