@@ -107,11 +107,11 @@ def train(
     color_weights_gradient: Annotated[Optional[float], typer.Option(
         help="Scale in [0, 1] of what the colour loss passes to the surface through the volume-rendering weights "
              "(1: the paper; 0: as --no-color-shapes-geometry); the colours still get their whole gradient "
-             "\\[default: the preset's: cpu 0.3, paper and tiny 1].")] = None,
+             "\\[default: the preset's: cpu 0.3 (inside the outline band, --color-weights-outline-px), paper and tiny 1].")] = None,
     color_weights_outline_px: Annotated[Optional[int], typer.Option(
         help="Pixels from the mask's outline within which the colour loss passes its whole gradient through the "
              "weights; elsewhere --color-weights-gradient applies. The images then shape the silhouette without "
-             "carving a pattern inside it (with --color-weights-gradient 0) \\[default: the preset's: 0, off].")] = None,
+             "carving a pattern inside it \\[default: the preset's: cpu the images' longer side / 128 (4 at 512 px), paper and tiny 0 (off)].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
         help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features. "

@@ -49,7 +49,7 @@ from stages.kernels import build_kernels, resolve_device
 from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
-from stages.train_options import TrainOptions, resolve_config
+from stages.train_options import TrainOptions, resolve_config, with_outline_px
 
 if TYPE_CHECKING:  # viser is imported only for --view
     from stages.train_view import TrainingMonitor
@@ -242,7 +242,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     clock = StageClock()
     dataset = read_dataset(Path(options.dataset))
     out = Path(options.out)
-    config = resolve_config(options)
+    config = with_outline_px(resolve_config(options), dataset.image_size)
     # Read-only, so before the target check; a --resume always continues its checkpoint.
     if not (options.force or options.resume) and unchanged(out, "model", config_to_json(config),
                                                            [InputRecord(dataset.path, "dataset")]):

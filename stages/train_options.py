@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from igavatar.errors import InputError
-from igavatar.training.config import TrainConfig, color_grid_config, preset, with_overrides
+from igavatar.training.config import OUTLINE_AUTO, TrainConfig, color_grid_config, outline_px_for, preset, with_overrides
 
 if TYPE_CHECKING:  # viser is imported only for --view
     from stages.train_view import ViewSettings
@@ -105,6 +105,13 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
             raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
     return _color_options(config, options)
+
+
+def with_outline_px(config: TrainConfig, image_size_hw: tuple[int, int]) -> TrainConfig:
+    """`config` with a preset's OUTLINE_AUTO outline band resolved for images of this size (pixels)."""
+    if config.color_weights_outline_px != OUTLINE_AUTO:
+        return config
+    return dataclasses.replace(config, color_weights_outline_px=outline_px_for(image_size_hw))
 
 
 def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:

@@ -120,7 +120,33 @@ def test_the_outline_option_is_checked_and_reaches_the_config(tmp_path):
     def options(**extra):
         return TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset="cpu", **extra)
 
-    assert resolve_config(options()).color_weights_outline_px == 0
     assert resolve_config(options(color_weights_outline_px=4)).color_weights_outline_px == 4
     with pytest.raises(InputError, match="--color-weights-outline-px -1"):
         resolve_config(options(color_weights_outline_px=-1))
+
+
+def test_the_cpu_preset_scales_the_band_with_the_images_and_a_given_width_wins(tmp_path):
+    """cpu: the longer side / 128 (the widths measured: 2 px at 256, 4 at 512); paper: off; an
+    explicit --color-weights-outline-px is kept as given."""
+    from igavatar.training.config import OUTLINE_AUTO, outline_px_for
+    from stages.train import TrainOptions, resolve_config
+    from stages.train_options import with_outline_px
+
+    def resolved(preset="cpu", size=(512, 384), **extra):
+        options = TrainOptions(dataset=tmp_path, out=tmp_path / "m", preset=preset, **extra)
+        return with_outline_px(resolve_config(options), size).color_weights_outline_px
+
+    assert resolve_config(TrainOptions(dataset=tmp_path, out=tmp_path / "m")).color_weights_outline_px == OUTLINE_AUTO
+    assert (outline_px_for((256, 256)), outline_px_for((384, 512)), outline_px_for((1024, 1024)), outline_px_for((64, 48))) == (2, 4, 8, 1)
+    assert resolved() == 4 and resolved(size=(256, 192)) == 2
+    assert resolved("paper") == 0 and resolved("tiny") == 0
+    assert resolved(color_weights_outline_px=3) == 3 and resolved(color_weights_outline_px=0) == 0
+
+
+def test_an_unresolved_automatic_band_is_refused_by_the_trainer(small_run):
+    from igavatar.training.config import OUTLINE_AUTO
+    from tests.test_train import _trainer
+
+    trainer = _trainer(small_run / "dataset", color_weights_outline_px=OUTLINE_AUTO)
+    with pytest.raises(ValueError, match="with_outline_px"):
+        trainer._weights_gradient_scale(0, trainer._draw_pixels(0))

@@ -72,7 +72,8 @@ class TrainConfig:
     """With color_shapes_geometry, rays within this many pixels of the mask's outline pass the colour
     loss's whole gradient through the weights, and the others `color_weights_gradient`: the images
     shape the silhouette, and a pattern inside it is not carved (0: `color_weights_gradient` on
-    every ray)."""
+    every ray; OUTLINE_AUTO: `outline_px_for(image size)`, resolved by the train stage once the
+    dataset is read, so a saved config always holds the pixels used)."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2
@@ -233,6 +234,16 @@ def color_grid_config(sdf_grid: HashGridConfig) -> HashGridConfig:
     return dataclasses.replace(sdf_grid, n_levels=levels, finest_resolution=finest)
 
 
+#: `color_weights_outline_px` of a preset that scales the band with the images (`outline_px_for`).
+OUTLINE_AUTO = -1
+
+
+def outline_px_for(image_size_hw: tuple[int, int]) -> int:
+    """The outline band's half-width for images of this size: the longer side / 128, at least 1
+    (2 px at 256, 4 at 512, 8 at 1024: the widths measured, tests/benchmarks/results/outline-band.md)."""
+    return max(1, round(max(image_size_hw) / 128))
+
+
 def preset(name: str) -> TrainConfig:
     """The TrainConfig of a named preset; InputError for an unknown name."""
     if name == "paper":
@@ -271,6 +282,10 @@ def preset(name: str) -> TrainConfig:
             # on 9 of 11 runs, the loose dress's seed 0 +0.2 mm; the images even
             # (tests/benchmarks/results/color-weights-gradient.md).
             color_weights_gradient=0.3,
+            # ... and the whole of it within a few pixels of the mask's outline, where the images
+            # shape the silhouette: CD-L1 -0.14 to -0.71 mm on 5 runs over 4 subjects, the bold
+            # stripes' side view smoother (tests/benchmarks/results/outline-band.md).
+            color_weights_outline_px=OUTLINE_AUTO,
         )
     if name == "tiny":
         return TrainConfig(

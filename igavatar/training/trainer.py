@@ -261,8 +261,11 @@ class Trainer:
         config = self.config
         if not config.color_shapes_geometry:
             return 0.0
-        if config.color_weights_outline_px <= 0:
+        if config.color_weights_outline_px == 0:
             return config.color_weights_gradient
+        if config.color_weights_outline_px < 0:
+            raise ValueError("color_weights_outline_px is OUTLINE_AUTO: resolve it for the images first "
+                             "(stages.train_options.with_outline_px)")
         on_band = outline_rays(self.data.masks[index], pixels, config.color_weights_outline_px)
         return weights_gradient_scale(on_band, config.color_weights_gradient).to(self.device)
 

@@ -31,6 +31,8 @@ sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
 from provenance import commit  # noqa: E402
 
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+
+from stages.train_options import with_outline_px  # noqa: E402
 from igavatar.avatar.model import build_avatar  # noqa: E402
 from igavatar.training.config import TrainConfig, color_grid_config, preset  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
@@ -52,7 +54,7 @@ def main() -> None:
     args = parser.parse_args()
     dataset = read_dataset(args.dataset)
     data = training_data(dataset)
-    base = dataclasses.replace(preset("cpu"), steps=800, shape_init_steps=0)
+    base = with_outline_px(dataclasses.replace(preset("cpu"), steps=800, shape_init_steps=0), dataset.image_size)
     sdf_grid = base.avatar.sdf.hash_grid
     paper = dataclasses.replace(base, avatar=dataclasses.replace(
         base.avatar, color=dataclasses.replace(base.avatar.color, hash_grid=None)))

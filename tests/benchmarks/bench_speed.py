@@ -55,6 +55,7 @@ from provenance import command, commit  # noqa: E402
 
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+from stages.train_options import with_outline_px  # noqa: E402
 from igavatar.avatar.model import build_avatar  # noqa: E402
 from igavatar.kernels import kernel_status, load_kernel, set_kernels_enabled  # noqa: E402
 import igavatar.model.posed as posed_module  # noqa: E402
@@ -144,7 +145,7 @@ def training_profile(
     far fewer samples per ray than the initial sphere, which is what a real run spends most steps on."""
     artifact = read_dataset(dataset)
     data = training_data(artifact)
-    config = with_overrides(dataclasses.replace(preset("cpu"), shape_init_steps=0))
+    config = with_outline_px(with_overrides(dataclasses.replace(preset("cpu"), shape_init_steps=0)), artifact.image_size)
     trainers: dict[str, Trainer] = {}
     profiler = Profiler()
     for name, enabled in (("reference", False), ("fast", True)):

@@ -27,6 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from igavatar.artifacts.manifest import read_artifact  # noqa: E402
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
+from stages.train_options import with_outline_px  # noqa: E402
 from igavatar.avatar.model import build_avatar  # noqa: E402
 from igavatar.training.config import REGULARIZERS, preset, with_overrides  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
@@ -65,7 +66,7 @@ def regularizer_costs(dataset: Path, preset_name: str, warmup: int, measured: in
     data = training_data(artifact)
     trainers = {}
     for name in REGULARIZERS:
-        config = with_overrides(dataclasses.replace(preset(preset_name), steps=10_000, shape_init_steps=0), regularizer=name)
+        config = with_outline_px(with_overrides(dataclasses.replace(preset(preset_name), steps=10_000, shape_init_steps=0), regularizer=name), artifact.image_size)
         torch.manual_seed(0)
         avatar = build_avatar(config, artifact.subject, artifact.data["pose_dim"])
         trainers[name] = Trainer(config, data, avatar, device)

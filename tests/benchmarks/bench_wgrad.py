@@ -40,11 +40,12 @@ STEP_SCRIPT = """
 import dataclasses, sys, time, torch
 sys.path.insert(0, sys.argv[1])
 from igavatar.avatar.dataset import read_dataset, training_data
+from stages.train_options import with_outline_px
 from igavatar.avatar.model import build_avatar
 from igavatar.training.config import preset
 from igavatar.training.trainer import Trainer
 dataset = read_dataset(sys.argv[2]); data = training_data(dataset)
-config = dataclasses.replace(preset("cpu"), steps=1500, shape_init_steps=0)
+config = with_outline_px(dataclasses.replace(preset("cpu"), steps=1500, shape_init_steps=0), dataset.image_size)
 torch.manual_seed(0)
 trainer = Trainer(config, data, build_avatar(config, dataset.subject, dataset.data["pose_dim"]))
 trainer.step = 900
@@ -68,13 +69,14 @@ def cpu_features() -> str:
 def step_shapes(dataset_path: Path) -> list[tuple[int, int, int]]:
     """(rows, in, out) of every weight gradient one `cpu`-preset step computes."""
     from igavatar.avatar.dataset import read_dataset, training_data
+    from stages.train_options import with_outline_px
     from igavatar.avatar.model import build_avatar
     from igavatar.model import linear as linear_module
     from igavatar.training.config import preset
     from igavatar.training.trainer import Trainer
 
     dataset = read_dataset(dataset_path)
-    config = dataclasses.replace(preset("cpu"), steps=1500, shape_init_steps=0)
+    config = with_outline_px(dataclasses.replace(preset("cpu"), steps=1500, shape_init_steps=0), dataset.image_size)
     torch.manual_seed(0)
     trainer = Trainer(config, training_data(dataset), build_avatar(config, dataset.subject, dataset.data["pose_dim"]))
     trainer.step = 900
