@@ -98,34 +98,40 @@ def test_decoupled_color_sets_the_four_options_and_each_can_be_overridden(tmp_pa
     assert paper.avatar.color.hash_grid is None  # the paper preset keeps the official network
 
 
+def composite_gradients(raw, colours, background, target, composite):
+    """Render (R, S) weights `raw` and colours (R, S, 3) over `background` (R, 3) as a RenderOutput,
+    apply `composite` to it and back-propagate a squared error to `target` (R, 3): the picture and
+    the gradients on the weights (zeros when none reach them) and on the colours."""
+    from igavatar.render.volume import RenderOutput
+
+    rays, samples = raw.shape
+    weights, sample_rgb = raw.clone().requires_grad_(True), colours.clone().requires_grad_(True)
+    rgb = (weights[..., None] * sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
+    zeros = torch.zeros(rays, samples)
+    out = RenderOutput(rgb=rgb, opacity=weights.sum(dim=1), depth=zeros[:, 0], normal=torch.zeros(rays, 3),
+                       weights=weights, sigma=zeros, t=zeros, valid=zeros > 0, gradient=None, sdf=None,
+                       sample_rgb=sample_rgb)
+    picture = composite(out)
+    ((picture - target) ** 2).sum().backward()
+    return picture.detach(), torch.zeros_like(raw) if weights.grad is None else weights.grad, sample_rgb.grad
+
+
+def random_composite(rays: int, samples: int, seed: int = 0):
+    """(raw weights (R, S) summing below 1 per ray, colours (R, S, 3), background (R, 3), target (R, 3))."""
+    generator = torch.Generator().manual_seed(seed)
+    return (torch.rand(rays, samples, generator=generator) / samples, torch.rand(rays, samples, 3, generator=generator),
+            torch.rand(rays, 3, generator=generator), torch.rand(rays, 3, generator=generator))
+
+
 @pytest.mark.parametrize("scale", [0.0, 0.3, 1.0])
 def test_a_scaled_weights_gradient_keeps_the_picture_and_the_colour_gradient(scale):
     """`rgb_with_weights_gradient(bg, s)` is the same composite as `rgb`; a loss on it reaches the
     colours in full and the weights (the geometry) scaled by s, against the reference gradients of
-    `rgb` itself."""
-    from igavatar.render.volume import RenderOutput
-
-    generator = torch.Generator().manual_seed(0)
-    rays, samples = 5, 7
-    raw = torch.rand(rays, samples, generator=generator) / samples
-    colours = torch.rand(rays, samples, 3, generator=generator)
-    background = torch.rand(rays, 3, generator=generator)
-    target = torch.rand(rays, 3, generator=generator)
-
-    def gradients(composite):
-        weights, sample_rgb = raw.clone().requires_grad_(True), colours.clone().requires_grad_(True)
-        rgb = (weights[..., None] * sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
-        zeros = torch.zeros(rays, samples)
-        out = RenderOutput(rgb=rgb, opacity=weights.sum(dim=1), depth=zeros[:, 0], normal=torch.zeros(rays, 3),
-                           weights=weights, sigma=zeros, t=zeros, valid=zeros > 0, gradient=None, sdf=None,
-                           sample_rgb=sample_rgb)
-        picture = composite(out)
-        ((picture - target) ** 2).sum().backward()
-        # At scale 0 nothing reaches the weights: no gradient at all, i.e. zeros.
-        return picture.detach(), torch.zeros_like(raw) if weights.grad is None else weights.grad, sample_rgb.grad
-
-    full_picture, full_weights, full_colours = gradients(lambda out: out.rgb)
-    picture, weights_grad, colours_grad = gradients(lambda out: out.rgb_with_weights_gradient(background, scale))
+    `rgb` itself. (At scale 0 nothing reaches the weights: zeros.)"""
+    case = random_composite(5, 7)
+    background = case[2]
+    full_picture, full_weights, full_colours = composite_gradients(*case, lambda out: out.rgb)
+    picture, weights_grad, colours_grad = composite_gradients(*case, lambda out: out.rgb_with_weights_gradient(background, scale))
     torch.testing.assert_close(picture, full_picture)
     torch.testing.assert_close(colours_grad, full_colours)
     torch.testing.assert_close(weights_grad, scale * full_weights)

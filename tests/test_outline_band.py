@@ -6,7 +6,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-from igavatar.render.volume import RenderOutput
 from igavatar.training.outline import outline_band, outline_rays, weights_gradient_scale
 
 
@@ -66,27 +65,12 @@ def test_each_ray_gets_one_on_the_band_and_the_inside_value_elsewhere():
 def test_a_per_ray_scale_scales_each_rays_weights_gradient_and_keeps_the_picture():
     """rgb_with_weights_gradient with (R,) scales: the picture and the colour gradient are `rgb`'s,
     and each ray's weights get its own share of `rgb`'s weights gradient (one ray 0, one 1, one 0.3)."""
-    generator = torch.Generator().manual_seed(0)
-    rays, samples = 3, 6
-    raw = torch.rand(rays, samples, generator=generator) / samples
-    colours = torch.rand(rays, samples, 3, generator=generator)
-    background = torch.rand(rays, 3, generator=generator)
-    target = torch.rand(rays, 3, generator=generator)
-    scale = torch.tensor([0.0, 1.0, 0.3])
+    from tests.test_color_decoupling import composite_gradients, random_composite
 
-    def gradients(composite):
-        weights, sample_rgb = raw.clone().requires_grad_(True), colours.clone().requires_grad_(True)
-        rgb = (weights[..., None] * sample_rgb).sum(dim=1) + (1.0 - weights.sum(dim=1))[:, None] * background
-        zeros = torch.zeros(rays, samples)
-        out = RenderOutput(rgb=rgb, opacity=weights.sum(dim=1), depth=zeros[:, 0], normal=torch.zeros(rays, 3),
-                           weights=weights, sigma=zeros, t=zeros, valid=zeros > 0, gradient=None, sdf=None,
-                           sample_rgb=sample_rgb)
-        picture = composite(out)
-        ((picture - target) ** 2).sum().backward()
-        return picture.detach(), weights.grad, sample_rgb.grad
-
-    full_picture, full_weights, full_colours = gradients(lambda out: out.rgb)
-    picture, weights_grad, colours_grad = gradients(lambda out: out.rgb_with_weights_gradient(background, scale))
+    case = random_composite(3, 6)
+    background, scale = case[2], torch.tensor([0.0, 1.0, 0.3])
+    full_picture, full_weights, full_colours = composite_gradients(*case, lambda out: out.rgb)
+    picture, weights_grad, colours_grad = composite_gradients(*case, lambda out: out.rgb_with_weights_gradient(background, scale))
     torch.testing.assert_close(picture, full_picture)
     torch.testing.assert_close(colours_grad, full_colours)
     torch.testing.assert_close(weights_grad, scale[:, None] * full_weights)
