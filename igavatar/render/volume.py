@@ -126,12 +126,13 @@ class RenderOutput:
         `scale` is one number, or (R,) one per ray (igavatar.training.outline).
         fixed + scale (rgb - fixed): the difference is zero in value and in its colour gradient."""
         if isinstance(scale, Tensor):
-            fixed = self.rgb_on_fixed_weights(background)
-            return fixed + scale.to(fixed)[:, None] * (self.rgb - fixed)
-        if scale == 1.0:
+            scale = scale.to(self.rgb)[:, None]
+        elif scale == 1.0:
             return self.rgb
+        elif scale == 0.0:
+            return self.rgb_on_fixed_weights(background)
         fixed = self.rgb_on_fixed_weights(background)
-        return fixed if scale == 0.0 else fixed + scale * (self.rgb - fixed)
+        return fixed + scale * (self.rgb - fixed)
 
 
 def _scatter(values: Tensor, mask: Tensor) -> Tensor:

@@ -76,9 +76,6 @@ class SparseAdam(torch.optim.Optimizer):
         if closure is not None:
             with torch.enable_grad():
                 loss = closure()
-        # Loaded only when a CPU tensor can use it: a CUDA run never builds the CPU kernel.
-        on_cpu = any(_kernel_applies(p) for g in self.param_groups for p in g["params"] if p.grad is not None)
-        kernel = load_kernel("sparseadam") if on_cpu and kernels_enabled() else None
         for group in self.param_groups:
             for param in group["params"]:
                 if param.grad is None:
@@ -93,7 +90,9 @@ class SparseAdam(torch.optim.Optimizer):
                 elif state["steps"].dtype != torch.int32:
                     # Optimizer.load_state_dict casts every state tensor but "step" to the parameter's dtype.
                     state["steps"] = state["steps"].to(torch.int32).contiguous()
-                if kernel is not None and _kernel_applies(param):
+                # Asked for only by a CPU tensor (a CUDA run never builds it); None when disabled or unbuildable.
+                kernel = load_kernel("sparseadam") if _kernel_applies(param) else None
+                if kernel is not None:
                     self._kernel_step(kernel, param, state, group)
                 else:
                     _reference_step(param, state, group)
