@@ -27,7 +27,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
                          "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_shapes_geometry",
-                         "color_weights_gradient", "color_weights_outline_px", "color_grid",
+                         "color_weights_gradient", "color_weights_outline_px", "color_grid", "shading",
                          "error_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
@@ -118,6 +118,11 @@ def train(
              "Without it bold stripes get carved into the surface and a real capture's clothes blur into one colour; "
              "--no-color-grid is the paper's network, a little better on plain clothes "
              "\\[default: the preset's: cpu on, paper off].")] = None,
+    shading: Annotated[Optional[str], typer.Option(
+        help="How the posed colour is lit: none (the paper: one colour per canonical point, whichever way it faces) "
+             "or sh9 (that colour is the albedo, times the clip's light as nine spherical harmonics of the posed "
+             "surface's normal: a person turning in a fixed light keeps its shading out of the texture, and exported "
+             "meshes carry the albedo) \\[default: the preset's: none].")] = None,
     error_sampling: Annotated[Optional[float], typer.Option(
         help="Share of the subject's ray patches, and of the frame draws, sent where a running map of the colour "
              "error is highest (Instant-NGP's error map) instead of uniformly; 0 is uniform "
@@ -138,7 +143,7 @@ def train(
         pose_prior_weight=pose_prior_weight, color_normal_gradient=color_normal_gradient, color_grid=color_grid,
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
         color_weights_gradient=color_weights_gradient, color_weights_outline_px=color_weights_outline_px,
-        decoupled_color=decoupled_color,
+        decoupled_color=decoupled_color, shading=shading,
         error_sampling=error_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from igavatar.errors import InputError
+from igavatar.model.shading import SHADINGS
 from igavatar.training.config import OUTLINE_AUTO, TrainConfig, color_grid_config, outline_px_for, preset, with_overrides
 
 if TYPE_CHECKING:  # viser is imported only for --view
@@ -64,6 +65,8 @@ class TrainOptions:
     color_weights_outline_px: int | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
+    #: The posed colour's light: "none" or "sh9" (igavatar.model.shading); None: the preset's.
+    shading: str | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
     error_sampling: float | None = None
     #: A browser page that follows the run (stages.train_view); None: no page.
@@ -139,4 +142,9 @@ def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
         color = dataclasses.replace(color, feature_gradient=features)
     if normal is not None:
         color = dataclasses.replace(color, normal_gradient=normal)
-    return dataclasses.replace(config, avatar=dataclasses.replace(config.avatar, color=color))
+    avatar = dataclasses.replace(config.avatar, color=color)
+    if options.shading is not None:
+        if options.shading not in SHADINGS:
+            raise InputError(f"--shading {options.shading!r}: expected one of {', '.join(SHADINGS)}")
+        avatar = dataclasses.replace(avatar, shading=options.shading)
+    return dataclasses.replace(config, avatar=avatar)

@@ -29,6 +29,7 @@ from igavatar.model.fields import (
     silhouette_offset,
 )
 from igavatar.model.nonrigid import NonRigidConfig, NonRigidOffset
+from igavatar.model.shading import SHADINGS, WorldShading, posed_normals
 from igavatar.render.volume import FieldOutput
 
 #: Where meshes are made: "silhouette" (the level set where the renderer's silhouette lies,
@@ -54,6 +55,14 @@ class AvatarConfig:
     """Bound of the non-rigid offset in meters (output = bound * tanh)."""
     deformer: DeformerConfig = field(default_factory=lambda: DeformerConfig(init_top_k=4))
     """Root finding; by default each point starts from the 4 bones that best explain it rigidly."""
+    shading: str = "none"
+    """How the posed colour is lit: "none" (the paper: the canonical colour as it is) or "sh9"
+    (the canonical colour is the albedo, times the clip's light as nine spherical harmonics of the
+    posed surface's world normal; igavatar.model.shading)."""
+
+    def __post_init__(self) -> None:
+        if self.shading not in SHADINGS:
+            raise ValueError(f"AvatarConfig.shading {self.shading!r}: expected one of {', '.join(SHADINGS)}")
 
 
 class Avatar(nn.Module):
@@ -99,6 +108,8 @@ class Avatar(nn.Module):
             deformer_config = replace(deformer_config, init_bones=tuple(init_bones), init_parts=parts)
         self.deformer = FastSnarfDeformer(skinning_grid, grid_box_min, grid_box_max, deformer_config)
         self.register_buffer("canonical_box", canonical_box.clone())
+        self.shading = WorldShading() if config.shading == "sh9" else None
+
     def surface_level(self, mode: str) -> float:
         """Meters outside the SDF's zero level at which meshes are made: 0 for "zero", where the
         renderer's silhouette lies for "silhouette" (SURFACE_LEVELS)."""
@@ -163,6 +174,7 @@ class Avatar(nn.Module):
         sigma_noise_std: float = 0.0,
         generator: torch.Generator | None = None,
         nonrigid: bool = True,
+        frame: PreparedFrame | None = None,
     ) -> FieldOutput:
         """Canonical fields at rigid correspondences (the non-rigid offset is applied here).
 
@@ -172,6 +184,8 @@ class Avatar(nn.Module):
             sigma_noise_std: std of Gaussian noise added to the density (early training), clamped >= 0.
             generator: RNG of that noise.
             nonrigid: whether the offset applies (see `offset_points`).
+            frame: the posed frame, whose world normals light the colour when the avatar has a
+                shading model (AvatarConfig.shading); None gives the canonical colour (albedo).
         Returns:
             FieldOutput with sigma (M,), rgb (M, 3), sdf (M,) and the analytic SDF gradient (M, 3)
             (closed form, so it costs no double backward), differentiable wrt the parameters.
@@ -181,6 +195,11 @@ class Avatar(nn.Module):
         normal = F.normalize(gradient, dim=-1, eps=1e-12)
         # A detached normal keeps the colour loss from tilting the surface (ColorFieldConfig.normal_gradient).
         rgb = self.color_field(feature, normal if self.config.color.normal_gradient else normal.detach(), x_canonical)
+        if self.shading is not None and frame is not None:
+            # The light reads the surface's orientation but does not turn it: a shading error is
+            # the light's or the albedo's to fix, not the geometry's (texture kept off the surface).
+            normal_world = posed_normals(frame.blended_grid, frame.box_min, frame.box_max, x_rigid.detach(), normal.detach())
+            rgb = rgb * self.shading(normal_world)
         sigma = self.density(sdf)
         if sigma_noise_std > 0:
             noise = torch.randn(sigma.shape, generator=generator, device=sigma.device, dtype=sigma.dtype)

@@ -74,7 +74,7 @@ class PosedAvatar:
     ) -> FieldOutput:
         """Differentiable canonical fields at rigid correspondences (see Avatar.field_at)."""
         return self.avatar.field_at(x_rigid, self.pose_condition, sigma_noise_std=sigma_noise_std, generator=generator,
-                                    nonrigid=self.nonrigid)
+                                    nonrigid=self.nonrigid, frame=self.frame)
 
     def canonical_samples(self, samples: RaySamples) -> tuple[RaySamples, torch.Tensor]:
         """Posed ray samples -> the same samples at their rigid canonical correspondences.
