@@ -122,7 +122,7 @@ def train(
         help="How the posed colour is lit: none (the paper: one colour per canonical point, whichever way it faces) "
              "or sh9 (that colour is the albedo, times the clip's light as nine spherical harmonics of the posed "
              "surface's normal: a person turning in a fixed light keeps its shading out of the texture, and exported "
-             "meshes carry the albedo) \\[default: the preset's: none].")] = None,
+             "meshes carry the albedo) \\[default: the preset's: cpu sh9, paper and tiny none].")] = None,
     error_sampling: Annotated[Optional[float], typer.Option(
         help="Share of the subject's ray patches, and of the frame draws, sent where a running map of the colour "
              "error is highest (Instant-NGP's error map) instead of uniformly; 0 is uniform "

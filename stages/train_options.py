@@ -65,7 +65,7 @@ class TrainOptions:
     color_weights_outline_px: int | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
-    #: The posed colour's light: "none" or "sh9" (igavatar.model.shading); None: the preset's.
+    #: The posed colour's light: "none" or "sh9" (igavatar.model.shading); None: the preset's (cpu sh9, paper none).
     shading: str | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
     error_sampling: float | None = None

@@ -37,7 +37,7 @@ FLOORS = {"volumetric_iou": 0.88, "chamfer_l1_mm": 5.5, "normal_consistency_surf
 #: The cpu preset before issue 16's geometry work: it lost hands and forearms.
 KNOWN_BAD = {"beta_init": 0.075, "beta_final": 0.003, "smooth_form": "eq9", "smooth_pairs": "valid",
              "free_space_weight": 0.0, "body_inside_weight": 0.0, "color_grid": False,
-             "color_weights_gradient": 1.0, "color_weights_outline_px": 0}
+             "color_weights_gradient": 1.0, "color_weights_outline_px": 0, "shading": "none"}
 
 
 def measure(run: Path, **train_overrides) -> dict:

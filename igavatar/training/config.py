@@ -203,12 +203,17 @@ def _cpu_avatar() -> AvatarConfig:
     # 4.2 mm, NC 0.88 -> 0.95) and a real capture rendered as one olive figure (ZJU-MoCap 377:
     # vest, skin and shoes recognisable with it, +0.4 dB). It costs the plain heavy body 0.04-0.6 mm
     # CD-L1 (tests/benchmarks/results/color-grid-default.md).
+    # The colour is the albedo, lit by the clip's light (nine spherical harmonics of the posed
+    # normal): a person turning in a fixed light no longer averages its shading into the colour or
+    # the shape. CD-L1 -0.13 to -0.52 mm and box PSNR +0.3 to +0.6 dB on the 5 runs of 4 subjects
+    # measured, everything else up or even (tests/benchmarks/results/shading.md).
     sdf = SDFFieldConfig(hash_grid=HashGridConfig(n_levels=12, log2_hashmap_size=17, base_resolution=16, finest_resolution=1024))
     return AvatarConfig(
         sdf=sdf,
         color=ColorFieldConfig(hash_grid=color_grid_config(sdf.hash_grid)),
         density=LaplaceDensityConfig(beta_init=0.02),
         deformer=DeformerConfig(init_top_k=2),
+        shading="sh9",
     )
 
 

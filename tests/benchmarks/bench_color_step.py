@@ -9,7 +9,12 @@ on all of them alike) and reports the median ms per step and its ratio to the pa
 Variants: `paper` (the preset without its colour grid: the official network), `cpu-default` (the
 preset: the colour grid of config.color_grid_config, the paper's coupling), `decoupled` (colour grid of config.color_grid_config, SDF features
 and normal detached, colour on fixed weights), `grid-detached` (the same with the weights coupled),
-`decoupled-grid12` (decoupled with a copy of the SDF's grid). Writes results/color-step.md and .json with the commit and the command.
+`decoupled-grid12` (decoupled with a copy of the SDF's grid), `no-shading` (the preset with `--shading none`:
+the colour as the paper's, unlit).
+`--variants` picks some (the first is the one the others are compared with), `--name` the results
+file: results/NAME.md and .json (default color-step) with the commit and the command.
+
+    python tests/benchmarks/bench_color_step.py --dataset RUN/dataset --variants no-shading,cpu-default --name shading-step
 """
 
 from __future__ import annotations
@@ -51,6 +56,8 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, required=True)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=15)
+    parser.add_argument("--variants", default="paper,cpu-default,decoupled,grid-detached,decoupled-grid12")
+    parser.add_argument("--name", default="color-step")
     args = parser.parse_args()
     dataset = read_dataset(args.dataset)
     data = training_data(dataset)
@@ -60,7 +67,10 @@ def main() -> None:
         base.avatar, color=dataclasses.replace(base.avatar.color, hash_grid=None)))
     variants = {"paper": paper, "cpu-default": base, "decoupled": decoupled(base, color_grid_config(sdf_grid)),
                 "grid-detached": decoupled(base, color_grid_config(sdf_grid), fixed_weights=False),
-                "decoupled-grid12": decoupled(base, sdf_grid)}
+                "decoupled-grid12": decoupled(base, sdf_grid),
+                "no-shading": dataclasses.replace(base, avatar=dataclasses.replace(base.avatar, shading="none"))}
+    variants = {name: variants[name] for name in args.variants.split(",")}
+    reference = next(iter(variants))
     trainers = {}
     for name, config in variants.items():
         torch.manual_seed(0)
@@ -81,14 +91,14 @@ def main() -> None:
     lines = ["# Step time of the colour options, side by side", "", f"Commit: `{commit()}`. Command:", "", f"    {command}", "",
              f"Dataset `{args.dataset}`; `cpu` preset from step 400, {args.rounds} rounds of {args.steps} steps, "
              f"round-robin, {torch.get_num_threads()} threads.", "",
-             "| variant | median ms/step | vs paper | rounds (ms/step) |", "|---|---|---|---|"]
+             f"| variant | median ms/step | vs {reference} | rounds (ms/step) |", "|---|---|---|---|"]
     for name, values in times.items():
-        lines.append(f"| {name} | {medians[name]:.1f} | {medians[name] / medians['paper'] - 1:+.1%} | "
+        lines.append(f"| {name} | {medians[name]:.1f} | {medians[name] / medians[reference] - 1:+.1%} | "
                      + ", ".join(f"{v:.1f}" for v in values) + " |")
     text = "\n".join(lines) + "\n"
     print(text)
-    (RESULTS / "color-step.md").write_text(text)
-    (RESULTS / "color-step.json").write_text(json.dumps({"commit": commit(), "command": command, "ms_per_step": times},
+    (RESULTS / f"{args.name}.md").write_text(text)
+    (RESULTS / f"{args.name}.json").write_text(json.dumps({"commit": commit(), "command": command, "ms_per_step": times},
                                                         indent=2) + "\n")
 
 
