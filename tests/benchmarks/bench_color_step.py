@@ -15,6 +15,10 @@ the colour as the paper's, unlit).
 file: results/NAME.md and .json (default color-step) with the commit and the command.
 
     python tests/benchmarks/bench_color_step.py --dataset RUN/dataset --variants no-shading,cpu-default --name shading-step
+
+`--model DIR --start N` starts every variant from that trained model's weights and occupancy grid at
+step N instead (a variant's extra parameters start fresh), so the steps sample as a trained surface
+does (late in training: fewer samples a ray than from scratch).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from provenance import commit  # noqa: E402
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
 
 from stages.train_options import with_outline_px  # noqa: E402
-from igavatar.avatar.model import build_avatar  # noqa: E402
+from igavatar.avatar.model import build_avatar, load_model  # noqa: E402
 from igavatar.training.config import TrainConfig, color_grid_config, preset  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
 
@@ -58,6 +62,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=15)
     parser.add_argument("--variants", default="paper,cpu-default,decoupled,grid-detached,decoupled-grid12")
     parser.add_argument("--name", default="color-step")
+    parser.add_argument("--model", type=Path, default=None, help="start from this trained model's weights")
+    parser.add_argument("--start", type=int, default=400, help="the step the trainers start at")
     args = parser.parse_args()
     dataset = read_dataset(args.dataset)
     data = training_data(dataset)
@@ -71,11 +77,17 @@ def main() -> None:
                 "no-shading": dataclasses.replace(base, avatar=dataclasses.replace(base.avatar, shading="none"))}
     variants = {name: variants[name] for name in args.variants.split(",")}
     reference = next(iter(variants))
+    trained = None if args.model is None else load_model(args.model)
     trainers = {}
     for name, config in variants.items():
         torch.manual_seed(0)
-        trainer = Trainer(config, data, build_avatar(config, dataset.subject, dataset.data["pose_dim"]))
-        trainer.step = 400
+        avatar = build_avatar(config, dataset.subject, dataset.data["pose_dim"])
+        if trained is not None:
+            avatar.load_state_dict(trained.avatar.state_dict(), strict=False)
+        trainer = Trainer(config, data, avatar)
+        if trained is not None:
+            trainer.canonical_grid.load_state_dict(trained.canonical_grid.state_dict())
+        trainer.step = args.start
         for _ in range(5):
             trainer.train_step()
         trainers[name] = trainer
@@ -89,7 +101,8 @@ def main() -> None:
     medians = {name: statistics.median(values) for name, values in times.items()}
     command = "python tests/benchmarks/bench_color_step.py " + shlex.join(sys.argv[1:])
     lines = ["# Step time of the colour options, side by side", "", f"Commit: `{commit()}`. Command:", "", f"    {command}", "",
-             f"Dataset `{args.dataset}`; `cpu` preset from step 400, {args.rounds} rounds of {args.steps} steps, "
+             f"Dataset `{args.dataset}`; `cpu` preset from step {args.start}"
+             + (f" with the weights of `{args.model}`" if args.model else "") + f", {args.rounds} rounds of {args.steps} steps, "
              f"round-robin, {torch.get_num_threads()} threads.", "",
              f"| variant | median ms/step | vs {reference} | rounds (ms/step) |", "|---|---|---|---|"]
     for name, values in times.items():
