@@ -15,7 +15,8 @@ NC 0.964 / 0.961 / 0.964, web 0 / 0.05 / 0. With 0.3 of the colour's pull throug
 and 2 (commit c11d08c, the same training code): IoU 0.910 / 0.917, CD-L1 4.00 / 3.67 mm, NC 0.963 / 0.965,
 web 0 / 0. With the full pull within the outline band (`color_weights_outline_px`, 2 px here; the
 commit after a28c9af), seeds 0 and 1: IoU 0.918 / 0.918, CD-L1 3.87 / 3.77 mm, NC 0.964 / 0.963, web 0 / 0.05
-(seed 2 not rerun). Each floor
+(seed 2 not rerun). With the colour lit by the clip's light (`shading` sh9, commit a3b8ac0), seeds 0 and 1:
+IoU 0.919 / 0.920, CD-L1 3.83 / 3.67 mm, NC 0.964 / 0.963, web 0 / 0.05. Each floor
 sits about five seed spreads from the mean, so noise does not trip it; the cpu preset as it was
 before the geometry work (`KNOWN_BAD`: beta 7.5 cm -> 3 mm, Eq. 9 smoothness, no hull or body
 priors) measured IoU 0.824, CD-L1 8.37 mm, NC 0.927, web 0.19 and a missing right hand, failing
