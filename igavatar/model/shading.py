@@ -2,8 +2,8 @@
 the world-space normal, multiplying the canonical colour (albedo).
 
     shading = WorldShading()                                   # (9, 3) coefficients, starts at 1
-    n_world = posed_normals(frame, x_rigid, normal_canonical)  # (P, 3) unit, world frame
-    rgb = albedo * shading(n_world)                            # (P, 3)
+    n_world = posed_normals(frame.blended_grid, frame.box_min, frame.box_max, x_rigid, normal_canonical)
+    rgb = albedo * shading(n_world)                            # (P, 3); n_world (P, 3) unit, world frame
 
 Why: the canonical colour cannot change as a body part turns toward or away from a light, so a
 person turning in a fixed light (a phone on a tripod, the synthetic captures' light beside the
