@@ -62,10 +62,8 @@ def posed_normals(blended_grid: torch.Tensor, box_min: torch.Tensor, box_max: to
         positive scale the normalization removes, so a near-singular blend needs no inverse.
     """
     a = sample_blended_transforms(blended_grid, box_min, box_max, x_rigid.to(blended_grid.dtype))[:, :, :3]
-    c0 = torch.cross(a[:, 1], a[:, 2], dim=-1)   # rows of the cofactor matrix
-    c1 = torch.cross(a[:, 2], a[:, 0], dim=-1)
-    c2 = torch.cross(a[:, 0], a[:, 1], dim=-1)
-    # A^-1 has the columns c0, c1, c2 over det(A), so A^-T n = (c0 . n, c1 . n, c2 . n) / det(A).
-    n = normal_canonical.to(a.dtype)
-    world = torch.stack([(c0 * n).sum(-1), (c1 * n).sum(-1), (c2 * n).sum(-1)], dim=-1)
+    # Row i of the cofactor matrix is row i+1 x row i+2 of A; A^-1 has these rows as columns over
+    # det(A), so A^-T n = cof(A) n / det(A).
+    cofactor = torch.cross(a.roll(-1, dims=1), a.roll(-2, dims=1), dim=-1)
+    world = (cofactor @ normal_canonical.to(a.dtype)[:, :, None])[:, :, 0]
     return F.normalize(world, dim=-1, eps=1e-12).to(normal_canonical.dtype)

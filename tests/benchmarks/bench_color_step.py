@@ -40,11 +40,10 @@ sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
 from provenance import commit  # noqa: E402
 
 from igavatar.avatar.dataset import read_dataset, training_data  # noqa: E402
-
-from stages.train_options import with_outline_px  # noqa: E402
 from igavatar.avatar.model import build_avatar, load_model  # noqa: E402
 from igavatar.training.config import TrainConfig, color_grid_config, preset  # noqa: E402
 from igavatar.training.trainer import Trainer  # noqa: E402
+from stages.train_options import with_outline_px  # noqa: E402
 
 RESULTS = ROOT / "tests" / "benchmarks" / "results"
 
