@@ -174,7 +174,7 @@ def eval_(
         Optional[float], typer.Option(help="Render test frames at this fraction of the dataset's image size; 1 scores at full size, as papers report \\[default: 1 on a GPU, 0.25 on CPU].")
     ] = None,
     samples: Annotated[
-        Optional[int], typer.Option("--samples", help="Samples per ray of the test renders \\[default: 128 on a GPU, 32 on CPU].", min=1)
+        Optional[int], typer.Option("--samples", help="Samples per ray of the test renders \\[default: the model's validation setting, 96 for the cpu preset, 128 for paper].", min=1)
     ] = None,
     image_frames: Annotated[
         Optional[int], typer.Option(help="Render this many test frames, evenly spaced; 0 = all \\[default: all on a GPU, 10 on CPU].", min=0)

@@ -199,8 +199,9 @@ class _ImagePlan:
         return size_hw[1] / self.dataset_hw[1], size_hw[0] / self.dataset_hw[0]
 
 
-def _image_plan(options: EvalOptions, device: torch.device, dataset: DatasetArtifact, n_frames: int) -> _ImagePlan:
-    settings = resolve_image_settings(options, device)
+def _image_plan(options: EvalOptions, device: torch.device, dataset: DatasetArtifact, n_frames: int,
+                model_samples: int) -> _ImagePlan:
+    settings = resolve_image_settings(options, device, model_samples)
     dataset_hw = dataset.image_size
     frames = image_frame_indices(n_frames, settings.max_frames) if options.images else set()
     # Mesh panels are ray cast (cheap), so they keep the dataset's resolution up to 512 px.
@@ -300,7 +301,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     notes: list[str] = [skipped_geometry] if skipped_geometry else []
     canonical = _canonical_geometry(model, inputs, options, clock, notes, progress) if options.geometry else None
     names = list(inputs.test.names)
-    plan = _image_plan(options, device, inputs.dataset, len(names))
+    plan = _image_plan(options, device, inputs.dataset, len(names), model.config.validation_samples)
     lpips_fn, lpips_status = lpips_scorer(device) if options.images else (None, "not computed: --no-images")
     records: list[dict] = []
     worst: tuple[float, str, np.ndarray, np.ndarray] | None = None  # (CD-L1, frame, posed vertices, error mm)

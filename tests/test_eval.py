@@ -31,7 +31,7 @@ from igavatar.capture.scans import match_scans
 from igavatar.metrics.frame_geometry import frame_geometry, signed_volume, volume_check
 from igavatar.metrics.lpips_scorer import lpips_scorer
 from stages.eval import EvalOptions, run_eval
-from stages.eval_options import IMAGE_DEFAULTS, image_frame_indices, resolve_image_settings
+from stages.eval_options import IMAGE_DEFAULTS, ImageSettings, image_frame_indices, resolve_image_settings
 
 FAST = dict(mesh_resolution=32, surface_samples=300, iou_points=20_000, image_scale=0.25, samples_per_ray=16, image_frames=0,
             device="cpu")
@@ -231,14 +231,16 @@ def test_lpips_is_not_computed_without_local_weights(tmp_path, monkeypatch):
     assert scorer is None and status.startswith("not computed")
 
 
-def test_image_defaults_follow_the_device_and_frames_are_evenly_spaced():
+def test_image_defaults_follow_the_device_and_the_model_and_frames_are_evenly_spaced():
     import torch
 
     options = EvalOptions(model=Path("m"), out=Path("r"))
-    assert resolve_image_settings(options, torch.device("cpu")) == IMAGE_DEFAULTS["cpu"]
-    assert resolve_image_settings(options, torch.device("cuda")) == IMAGE_DEFAULTS["cuda"]
+    # Size and frames follow the device; samples per ray follow the model (its validation renders').
+    assert resolve_image_settings(options, torch.device("cpu"), model_samples=96) == ImageSettings(0.25, 96, 10)
+    assert resolve_image_settings(options, torch.device("cuda"), model_samples=128) == ImageSettings(1.0, 128, 0)
+    assert IMAGE_DEFAULTS["cpu"] == (0.25, 10) and IMAGE_DEFAULTS["cuda"] == (1.0, 0)
     chosen = EvalOptions(model=Path("m"), out=Path("r"), image_scale=0.5, samples_per_ray=8, image_frames=3)
-    assert resolve_image_settings(chosen, torch.device("cuda")) == type(IMAGE_DEFAULTS["cpu"])(0.5, 8, 3)
+    assert resolve_image_settings(chosen, torch.device("cuda"), model_samples=96) == ImageSettings(0.5, 8, 3)
     assert image_frame_indices(30, 10) == {0, 3, 6, 10, 13, 16, 19, 23, 26, 29}
     assert image_frame_indices(5, 0) == image_frame_indices(5, 9) == set(range(5))
 
