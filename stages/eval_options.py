@@ -129,7 +129,7 @@ def resolve_image_settings(options: EvalOptions, device: torch.device, model_sam
     its validation renders and `animate` use). Rendering with fewer samples than the model was
     trained and validated with puts each ray's colour off the surface and quantizes the outline:
     on the demo subject, 32 samples instead of 96 cost 0.44 dB box PSNR and 0.019 box SSIM at a
-    quarter size (tests/benchmarks/results/eval-samples.md)."""
+    quarter size (tests/benchmarks/results/eval-samples-quarter.md)."""
     scale, max_frames = IMAGE_DEFAULTS["cuda" if device.type == "cuda" else "cpu"]
     return ImageSettings(
         scale=options.image_scale if options.image_scale is not None else scale,
