@@ -28,7 +28,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
                          "beta_final", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
                          "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_shapes_geometry",
                          "color_weights_gradient", "color_weights_outline_px", "color_grid", "shading",
-                         "error_sampling"),
+                         "error_sampling", "outline_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
     dataset: Annotated[Optional[Path], typer.Option(help="Dataset directory \\[default: RUN_DIR/dataset].")] = None,
@@ -127,6 +127,10 @@ def train(
         help="Share of the subject's ray patches, and of the frame draws, sent where a running map of the colour "
              "error is highest (Instant-NGP's error map) instead of uniformly; 0 is uniform "
              "\\[default: the preset's: 0].")] = None,
+    outline_sampling: Annotated[Optional[float], typer.Option(
+        help="Share of the subject's ray patches centred on the edge of the person's mask instead of anywhere on "
+             "the person: most of a held-out frame's error lies on the outline; 0 is uniform "
+             "\\[default: the preset's: 0].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:
@@ -144,7 +148,7 @@ def train(
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
         color_weights_gradient=color_weights_gradient, color_weights_outline_px=color_weights_outline_px,
         decoupled_color=decoupled_color, shading=shading,
-        error_sampling=error_sampling,
+        error_sampling=error_sampling, outline_sampling=outline_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),
     )
     run_stage(run_train, options, quiet, json_out)

@@ -69,6 +69,8 @@ class TrainOptions:
     shading: str | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
     error_sampling: float | None = None
+    #: Share of the subject's patches centred on the mask's edge; None: the preset's (0).
+    outline_sampling: float | None = None
     #: A browser page that follows the run (stages.train_view); None: no page.
     view: ViewSettings | None = None
 
@@ -98,6 +100,13 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 0.0 <= options.error_sampling <= 1.0:
             raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
         config = dataclasses.replace(config, error_sampling=options.error_sampling)
+    if options.outline_sampling is not None:
+        if not 0.0 <= options.outline_sampling <= 1.0:
+            raise InputError(f"--outline-sampling {options.outline_sampling}: expected a share in [0, 1]")
+        config = dataclasses.replace(config, outline_sampling=options.outline_sampling)
+    if config.outline_sampling + config.error_sampling > 1.0:
+        raise InputError(f"--outline-sampling {config.outline_sampling} and --error-sampling {config.error_sampling}: "
+                         "together they share the subject's patches, so their sum must be <= 1")
     if options.beta_init is not None:
         if not 1e-4 <= options.beta_init <= 1.0:
             raise InputError(f"--beta-init {options.beta_init}: expected meters in [1e-4, 1]")

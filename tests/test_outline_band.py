@@ -134,3 +134,53 @@ def test_an_unresolved_automatic_band_is_refused_by_the_trainer(small_run):
     trainer = _trainer(small_run / "dataset", color_weights_outline_px=OUTLINE_AUTO)
     with pytest.raises(ValueError, match="with_outline_px"):
         trainer._weights_gradient_scale(0, trainer._draw_pixels(0))
+
+
+def test_the_edge_pixels_are_the_persons_pixels_next_to_the_background():
+    """A disc cut by the image's left edge: the edge pixels are exactly the person's pixels with a
+    background pixel among their 8 neighbours (brute force), none on the image's border."""
+    from igavatar.training.outline import outline_pixels
+
+    ys, xs = torch.meshgrid(torch.arange(20), torch.arange(24), indexing="ij")
+    mask = (ys - 10) ** 2 + (xs - 2) ** 2 < 8 ** 2
+    expected = mask & (_chebyshev_to_outline(mask) <= 1)
+    edge = outline_pixels(mask)
+    got = torch.zeros_like(mask)
+    got[edge[:, 1], edge[:, 0]] = True
+    assert torch.equal(got, expected)
+    assert not got[:, 0][4:17].any()          # the frame's edge is no outline
+    assert got.sum() < mask.sum() / 2
+
+
+def test_outline_sampling_centres_the_subjects_patches_on_the_edge(small_run):
+    """With --outline-sampling 1 each subject-centred patch is centred on an edge pixel of its frame's
+    mask (where the image's border does not clamp it); the centres spread over the edge; a share out
+    of [0, 1] is refused."""
+    from igavatar.errors import InputError
+    from igavatar.training.outline import outline_pixels
+    from stages.train import TrainOptions, resolve_config
+    from tests.test_train import _trainer
+
+    dataset = small_run / "dataset"
+    trainer = _trainer(dataset, outline_sampling=1.0)
+    size, (height, width) = trainer.config.patch_size, trainer.data.image_size
+    n_in = int(round(trainer._patches_per_step * trainer.config.patch_centres_in_mask))
+    index = int(trainer.data.train_indices[0])
+    edge = outline_pixels(trainer.data.masks[index])
+    edge_set = {tuple(p) for p in edge.tolist()}
+    drawn = trainer._outline_centres(index, 400)
+    assert {tuple(p) for p in drawn.tolist()} <= edge_set
+    assert len({tuple(p) for p in drawn.tolist()}) > 0.8 * len(edge_set)     # uniform over the edge, not one spot
+    checked = 0
+    for _ in range(10):
+        patches = trainer._draw_pixels(index).reshape(-1, size * size, 2)[:n_in]
+        for patch in patches:
+            centre = patch[0] + size // 2                                     # top-left + half the edge
+            if patch[0, 0] > 0 and patch[0, 1] > 0 and patch[-1, 0] < width - 1 and patch[-1, 1] < height - 1:
+                assert tuple(centre.tolist()) in edge_set
+                checked += 1
+    assert checked > 0
+    with pytest.raises(InputError, match="--outline-sampling 1.5"):
+        resolve_config(TrainOptions(dataset=dataset, out=dataset / "m", preset="cpu", outline_sampling=1.5))
+    with pytest.raises(InputError, match="sum must be <= 1"):
+        resolve_config(TrainOptions(dataset=dataset, out=dataset / "m", preset="cpu", outline_sampling=0.6, error_sampling=0.6))

@@ -60,6 +60,10 @@ class TrainConfig:
     renders are wrong (textures, edges, a face); 0 draws uniformly (the paper)."""
     error_cell_px: int = 16
     """Edge in pixels of the error map's cells."""
+    outline_sampling: float = 0.0
+    """Share of the subject-centred patches centred on the mask's edge (igavatar.training.outline.
+    outline_pixels) instead of anywhere on the person: the outline holds most of the held-out image
+    error; 0 draws them uniformly over the mask (the paper)."""
     color_shapes_geometry: bool = True
     """Whether the colour loss reaches the compositing weights, and so the geometry (VolSDF, the
     paper). False composites the colour on weights held fixed for that loss: the surface is then

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from igavatar.training.outline import outline_pixels
+
 
 @dataclass(frozen=True)
 class TrainingData:
@@ -36,6 +38,7 @@ class TrainingData:
     posed_boxes: torch.Tensor
     train_indices: torch.Tensor
     _mask_pixels: dict = field(default_factory=dict, repr=False, compare=False)
+    _edge_pixels: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -47,6 +50,14 @@ class TrainingData:
             ys, xs = torch.nonzero(self.masks[index], as_tuple=True)
             self._mask_pixels[index] = torch.stack((xs, ys), dim=-1)
         return self._mask_pixels[index]
+
+    def edge_pixels(self, index: int) -> torch.Tensor:
+        """(E, 2) long (x, y) of the frame's mask edge (igavatar.training.outline.outline_pixels; computed
+        once per frame); the mask's own pixels when it has no edge in the image (all person)."""
+        if index not in self._edge_pixels:
+            edge = outline_pixels(self.masks[index])
+            self._edge_pixels[index] = edge if edge.shape[0] > 0 else self.mask_pixels(index)
+        return self._edge_pixels[index]
 
 
 def sample_patch_pixels(

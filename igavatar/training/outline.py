@@ -3,6 +3,7 @@
     on_band = outline_rays(mask_hw, pixels_xy, width_px=4)    # (R,) bool, what training uses
     band = outline_band(mask_hw, width_px=4)                  # (H, W) bool, the plain reference
     scale = weights_gradient_scale(on_band, 0.0)              # (R,) 1 on the band, 0.0 elsewhere
+    edge_xy = outline_pixels(mask_hw)                         # (N, 2) the person's edge pixels, for patch centres
 
 The colour loss's gradient through the volume-rendering weights helps where the images shape the
 silhouette (a loose garment's edge, the gap between the legs), and carves where a bold pattern lies
@@ -68,3 +69,18 @@ def weights_gradient_scale(on_band: torch.Tensor, inside: float) -> torch.Tensor
         inside: the scale away from the outline, in [0, 1].
     """
     return torch.where(on_band, torch.tensor(1.0), torch.tensor(float(inside)))
+
+
+def outline_pixels(mask_hw: torch.Tensor) -> torch.Tensor:
+    """(N, 2) long (x, y): the person's pixels with a background pixel among their 8 neighbours (the
+    mask's inner edge, `outline_band(mask_hw, 1)` within the mask), row by row. Patches centred on
+    them straddle the outline, where most of the held-out image error lies
+    (tests/benchmarks/results/image-error-regions.md).
+
+    Args:
+        mask_hw: (H, W) the person's mask (bool, or numbers where > 0.5 is the person).
+    """
+    person = mask_hw.float() > 0.5
+    edge = outline_band(mask_hw, 1) & person
+    ys, xs = torch.nonzero(edge, as_tuple=True)
+    return torch.stack((xs, ys), dim=1).long()

@@ -273,13 +273,21 @@ class Trainer:
         """The step's patch pixels (P, 2) of frame `index`; some centres steered by the error map."""
         config = self.config
         mask_pixels = self.data.mask_pixels(index)
-        steered = None
+        n_in = int(round(self._patches_per_step * config.patch_centres_in_mask))
+        chosen = []
+        if config.outline_sampling > 0:
+            chosen.append(self._outline_centres(index, int(round(n_in * config.outline_sampling))))
         if self.error_map is not None:
-            n_in = int(round(self._patches_per_step * config.patch_centres_in_mask))
             n_steered = int(round(n_in * config.error_sampling))
-            steered = self.error_map.draw_centres(index, mask_pixels, n_steered, self.generator)
+            chosen.append(self.error_map.draw_centres(index, mask_pixels, n_steered, self.generator))
+        steered = torch.cat(chosen) if chosen else None
         return sample_patch_pixels(mask_pixels, self.data.image_size, self._patches_per_step, config.patch_size,
                                    config.patch_centres_in_mask, self.generator, steered)
+
+    def _outline_centres(self, index: int, count: int) -> torch.Tensor:
+        """(count, 2) long: patch centres drawn uniformly from frame `index`'s mask edge."""
+        edge = self.data.edge_pixels(index)
+        return edge[torch.randint(0, edge.shape[0], (count,), generator=self.generator)]
 
     def train_step(self) -> dict[str, float]:
         """One optimization step; returns the step's scalar logs."""
