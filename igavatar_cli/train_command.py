@@ -130,7 +130,7 @@ def train(
     outline_sampling: Annotated[Optional[float], typer.Option(
         help="Share of the subject's ray patches centred on the edge of the person's mask instead of anywhere on "
              "the person: most of a held-out frame's error lies on the outline; 0 is uniform "
-             "\\[default: the preset's: 0].")] = None,
+             "\\[default: the preset's: cpu 0.5, paper and tiny 0].")] = None,
     quiet: Quiet = False,
     json_out: JsonOut = False,
 ) -> None:

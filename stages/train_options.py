@@ -69,7 +69,7 @@ class TrainOptions:
     shading: str | None = None
     #: Share of patch centres and frames drawn by the running error map; None: the preset's (0).
     error_sampling: float | None = None
-    #: Share of the subject's patches centred on the mask's edge; None: the preset's (0).
+    #: Share of the subject's patches centred on the mask's edge; None: the preset's (cpu 0.5, paper 0).
     outline_sampling: float | None = None
     #: A browser page that follows the run (stages.train_view); None: no page.
     view: ViewSettings | None = None

@@ -184,3 +184,10 @@ def test_outline_sampling_centres_the_subjects_patches_on_the_edge(small_run):
         resolve_config(TrainOptions(dataset=dataset, out=dataset / "m", preset="cpu", outline_sampling=1.5))
     with pytest.raises(InputError, match="sum must be <= 1"):
         resolve_config(TrainOptions(dataset=dataset, out=dataset / "m", preset="cpu", outline_sampling=0.6, error_sampling=0.6))
+
+
+def test_the_cpu_preset_centres_half_the_subjects_patches_on_the_edge_and_the_paper_none():
+    from igavatar.training.config import preset
+
+    assert preset("cpu").outline_sampling == 0.5
+    assert preset("paper").outline_sampling == 0.0 and preset("tiny").outline_sampling == 0.0

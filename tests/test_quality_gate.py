@@ -16,7 +16,9 @@ and 2 (commit c11d08c, the same training code): IoU 0.910 / 0.917, CD-L1 4.00 / 
 web 0 / 0. With the full pull within the outline band (`color_weights_outline_px`, 2 px here; the
 commit after a28c9af), seeds 0 and 1: IoU 0.918 / 0.918, CD-L1 3.87 / 3.77 mm, NC 0.964 / 0.963, web 0 / 0.05
 (seed 2 not rerun). With the colour lit by the clip's light (`shading` sh9, commit a3b8ac0), seeds 0 and 1:
-IoU 0.919 / 0.920, CD-L1 3.83 / 3.67 mm, NC 0.964 / 0.963, web 0 / 0.05. Each floor
+IoU 0.919 / 0.920, CD-L1 3.83 / 3.67 mm, NC 0.964 / 0.963, web 0 / 0.05. With half the person's patches
+centred on the mask's edge (`outline_sampling` 0.5, the commit after a6546e3), seed 0: IoU 0.931, CD-L1 3.23 mm,
+NC 0.965, web 0 (seed 1 not rerun). Each floor
 sits about five seed spreads from the mean, so noise does not trip it; the cpu preset as it was
 before the geometry work (`KNOWN_BAD`: beta 7.5 cm -> 3 mm, Eq. 9 smoothness, no hull or body
 priors) measured IoU 0.824, CD-L1 8.37 mm, NC 0.927, web 0.19 and a missing right hand, failing
@@ -38,7 +40,8 @@ FLOORS = {"volumetric_iou": 0.88, "chamfer_l1_mm": 5.5, "normal_consistency_surf
 #: The cpu preset before issue 16's geometry work: it lost hands and forearms.
 KNOWN_BAD = {"beta_init": 0.075, "beta_final": 0.003, "smooth_form": "eq9", "smooth_pairs": "valid",
              "free_space_weight": 0.0, "body_inside_weight": 0.0, "color_grid": False,
-             "color_weights_gradient": 1.0, "color_weights_outline_px": 0, "shading": "none"}
+             "color_weights_gradient": 1.0, "color_weights_outline_px": 0, "shading": "none",
+             "outline_sampling": 0.0}
 
 
 def measure(run: Path, **train_overrides) -> dict:
