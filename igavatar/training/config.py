@@ -296,8 +296,9 @@ def preset(name: str) -> TrainConfig:
             # stripes' side view smoother (tests/benchmarks/results/outline-band.md).
             color_weights_outline_px=OUTLINE_AUTO,
             # Half the subject's patches centred on the mask's edge, where 57-90 % of the held-out
-            # image error lay: CD-L1 -0.2 to -1.3 mm and full-size box PSNR +0.3 to +1.9 dB on every
-            # subject, at the same step time (tests/benchmarks/results/outline-sampling.md).
+            # image error lay: CD-L1 -0.15 to -1.25 mm and full-size box PSNR +0.2 to +1.9 dB on five
+            # runs over four subjects, the inside's texture a little fainter, at the same rays a step
+            # (tests/benchmarks/results/outline-sampling.md).
             outline_sampling=0.5,
         )
     if name == "tiny":

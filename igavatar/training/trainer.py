@@ -270,7 +270,8 @@ class Trainer:
         return weights_gradient_scale(on_band, config.color_weights_gradient).to(self.device)
 
     def _draw_pixels(self, index: int) -> torch.Tensor:
-        """The step's patch pixels (P, 2) of frame `index`; some centres steered by the error map."""
+        """The step's patch pixels (P, 2) of frame `index`; some person-centred patches centred on the
+        mask's edge (config.outline_sampling) or steered by the error map (config.error_sampling)."""
         config = self.config
         mask_pixels = self.data.mask_pixels(index)
         n_in = int(round(self._patches_per_step * config.patch_centres_in_mask))
