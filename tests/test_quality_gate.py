@@ -17,8 +17,8 @@ web 0 / 0. With the full pull within the outline band (`color_weights_outline_px
 commit after a28c9af), seeds 0 and 1: IoU 0.918 / 0.918, CD-L1 3.87 / 3.77 mm, NC 0.964 / 0.963, web 0 / 0.05
 (seed 2 not rerun). With the colour lit by the clip's light (`shading` sh9, commit a3b8ac0), seeds 0 and 1:
 IoU 0.919 / 0.920, CD-L1 3.83 / 3.67 mm, NC 0.964 / 0.963, web 0 / 0.05. With half the person's patches
-centred on the mask's edge (`outline_sampling` 0.5, the commit after a6546e3), seed 0: IoU 0.931, CD-L1 3.23 mm,
-NC 0.965, web 0 (seed 1 not rerun). Each floor
+centred on the mask's edge (`outline_sampling` 0.5, d370c30), seeds 0 and 1: IoU 0.931 / 0.918, CD-L1
+3.23 / 3.68 mm, NC 0.965 / 0.964, web 0 / 0 (seed 1 even with the last default at this small setting). Each floor
 sits about five seed spreads from the mean, so noise does not trip it; the cpu preset as it was
 before the geometry work (`KNOWN_BAD`: beta 7.5 cm -> 3 mm, Eq. 9 smoothness, no hull or body
 priors) measured IoU 0.824, CD-L1 8.37 mm, NC 0.927, web 0.19 and a missing right hand, failing
