@@ -76,6 +76,9 @@ class DeformerConfig:
     part, not of its bone alone. None: the bone's own weight. Without it, where a body's own
     weights give a limb to bones that start no search (the knee to a twist bone, the ankle to
     the foot's children), no start looks self-consistent and the top-k keep the wrong ones."""
+    fallback_starts: bool = True
+    """With `init_top_k`: a point none of whose k starts converged tries the other starts (its k
+    candidates are then the first of those that converged)."""
     chunk_size: int = 32768
     """Posed points processed together by `canonicalize` (bounds peak memory)."""
 
@@ -480,10 +483,14 @@ class FastSnarfDeformer(nn.Module):
         With `init_top_k`, only the k starts with the largest self-weight `w_b(B_b^-1 x_d)` are
         kept, ordered by that weight (largest first).
         """
+        return self.ranked_starts(x_posed, frame)[:, : self.candidates_per_point(frame)]
+
+    def ranked_starts(self, x_posed: torch.Tensor, frame: PreparedFrame) -> torch.Tensor:
+        """Every start point, (P, 3) -> (P, I0, 3); with `init_top_k`, ordered by self-weight
+        `w_b(B_b^-1 x_d)`, largest first (the order `initial_points` keeps the first k of)."""
         inverse = frame.init_inverse.to(x_posed.dtype)
         x_init = torch.einsum("irc,pc->pir", inverse[:, :, :3], x_posed) + inverse[:, :, 3]
-        top_k = self.config.init_top_k
-        if top_k is None or top_k >= frame.num_candidates:
+        if self.config.init_top_k is None or self.config.init_top_k >= frame.num_candidates:
             return x_init
         num_points, num_init = x_init.shape[:2]
         kernel = _skinning_kernel(x_init) if frame.init_weights_last is not None else None
@@ -494,7 +501,7 @@ class FastSnarfDeformer(nn.Module):
                 self._start_weight_grid(frame.init_bones), frame.box_min, frame.box_max, x_init.reshape(-1, 3),
             ).reshape(num_points, num_init, num_init)
             self_weight = torch.diagonal(init_weights, dim1=1, dim2=2)
-        order = self_weight.topk(top_k, dim=1).indices
+        order = self_weight.topk(num_init, dim=1).indices
         return torch.gather(x_init, 1, order.unsqueeze(-1).expand(-1, -1, 3))
 
     @torch.no_grad()
@@ -538,16 +545,41 @@ class FastSnarfDeformer(nn.Module):
     def _canonicalize_chunk(
         self, x_posed: torch.Tensor, frame: PreparedFrame
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        x_init = self.initial_points(x_posed, frame)
+        starts = self.ranked_starts(x_posed, frame)
+        num_candidates = self.candidates_per_point(frame)
+        x_root, valid = self._solve(frame, x_posed, starts[:, :num_candidates])
+        if self.config.fallback_starts and num_candidates < starts.shape[1]:
+            x_root, valid = self._fall_back(frame, x_posed, starts[:, num_candidates:], x_root, valid)
+        valid = _remove_duplicates(x_root, valid, self.config.duplicate_threshold)
+        return x_root, valid
+
+    def _solve(self, frame: PreparedFrame, x_posed: torch.Tensor, x_init: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Roots of (P, 3) posed points from (P, K, 3) starts: (P, K, 3) and valid (P, K) (converged,
+        inside the grid; duplicates not yet removed)."""
         num_points, num_candidates = x_init.shape[:2]
         x_target = x_posed.unsqueeze(1).expand(-1, num_candidates, -1).reshape(-1, 3)
         x_root, residual = _broyden(frame, x_target, x_init.reshape(-1, 3), self.config)
-        valid = (residual < self.config.converge_threshold) & inside_grid(
-            frame.box_min, frame.box_max, x_root
-        )
-        x_root = x_root.reshape(num_points, num_candidates, 3)
-        valid = valid.reshape(num_points, num_candidates)
-        valid = _remove_duplicates(x_root, valid, self.config.duplicate_threshold)
+        valid = (residual < self.config.converge_threshold) & inside_grid(frame.box_min, frame.box_max, x_root)
+        return x_root.reshape(num_points, num_candidates, 3), valid.reshape(num_points, num_candidates)
+
+    def _fall_back(self, frame: PreparedFrame, x_posed: torch.Tensor, rest: torch.Tensor, x_root: torch.Tensor,
+                   valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points none of whose K kept starts converged try their (P, R, 3) `rest`; their K slots
+        take the first converged roots of those, in rank order.
+
+        Where two limbs meet in a pose (a hand at the hip), the other limb's bones look
+        self-consistent at the first limb's points and can fill every kept start.
+        """
+        lost = torch.nonzero(~valid.any(dim=1)).squeeze(1)
+        if lost.numel() == 0:
+            return x_root, valid
+        rest_root, rest_valid = self._solve(frame, x_posed.index_select(0, lost), rest.index_select(0, lost))
+        slots = min(valid.shape[1], rest.shape[1])
+        # Converged roots first, each group in rank order (a stable sort on "not converged").
+        pick = torch.sort((~rest_valid).to(torch.uint8), dim=1, stable=True).indices[:, :slots]
+        x_root, valid = x_root.clone(), valid.clone()
+        x_root[lost, :slots] = torch.gather(rest_root, 1, pick.unsqueeze(-1).expand(-1, -1, 3))
+        valid[lost, :slots] = torch.gather(rest_valid, 1, pick)
         return x_root, valid
 
     def lbs_jacobian(self, x_canonical: torch.Tensor, frame: PreparedFrame) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""Step time of the colour options side by side: the paper's colour network against the colour grids.
+"""Step time of training options side by side: the colour options, and the root finding's starts.
 
     python tests/benchmarks/bench_color_step.py --dataset RUN/dataset [--rounds 5] [--steps 15]
 
@@ -10,7 +10,8 @@ Variants: `paper` (the preset without its colour grid: the official network), `c
 preset: the colour grid of config.color_grid_config, the paper's coupling), `decoupled` (colour grid of config.color_grid_config, SDF features
 and normal detached, colour on fixed weights), `grid-detached` (the same with the weights coupled),
 `decoupled-grid12` (decoupled with a copy of the SDF's grid), `no-shading` (the preset with `--shading none`:
-the colour as the paper's, unlit).
+the colour as the paper's, unlit), `no-root-fallback` (the preset without its deformer's fallback starts:
+a point none of whose top-2 starts converged stays without a root), `top4` (four starts a point instead of two).
 `--variants` picks some (the first is the one the others are compared with), `--name` the results
 file: results/NAME.md and .json (default color-step) with the commit and the command.
 
@@ -54,6 +55,11 @@ def decoupled(base: TrainConfig, grid, fixed_weights: bool = True) -> TrainConfi
                                avatar=dataclasses.replace(base.avatar, color=color))
 
 
+def with_deformer(base: TrainConfig, **changes) -> TrainConfig:
+    deformer = dataclasses.replace(base.avatar.deformer, **changes)
+    return dataclasses.replace(base, avatar=dataclasses.replace(base.avatar, deformer=deformer))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--dataset", type=Path, required=True)
@@ -73,7 +79,8 @@ def main() -> None:
     variants = {"paper": paper, "cpu-default": base, "decoupled": decoupled(base, color_grid_config(sdf_grid)),
                 "grid-detached": decoupled(base, color_grid_config(sdf_grid), fixed_weights=False),
                 "decoupled-grid12": decoupled(base, sdf_grid),
-                "no-shading": dataclasses.replace(base, avatar=dataclasses.replace(base.avatar, shading="none"))}
+                "no-shading": dataclasses.replace(base, avatar=dataclasses.replace(base.avatar, shading="none")),
+                "no-root-fallback": with_deformer(base, fallback_starts=False), "top4": with_deformer(base, init_top_k=4)}
     variants = {name: variants[name] for name in args.variants.split(",")}
     reference = next(iter(variants))
     trained = None if args.model is None else load_model(args.model)
@@ -99,7 +106,7 @@ def main() -> None:
             times[name].append(1000 * (time.perf_counter() - tick) / args.steps)
     medians = {name: statistics.median(values) for name, values in times.items()}
     command = "python tests/benchmarks/bench_color_step.py " + shlex.join(sys.argv[1:])
-    lines = ["# Step time of the colour options, side by side", "", f"Commit: `{commit()}`. Command:", "", f"    {command}", "",
+    lines = ["# Step time of training options, side by side", "", f"Commit: `{commit()}`. Command:", "", f"    {command}", "",
              f"Dataset `{args.dataset}`; `cpu` preset from step {args.start}"
              + (f" with the weights of `{args.model}`" if args.model else "") + f", {args.rounds} rounds of {args.steps} steps, "
              f"round-robin, {torch.get_num_threads()} threads.", "",
