@@ -65,10 +65,8 @@ def preprocess(
     input_format: Annotated[str, typer.Option("--format", help="Input layout: auto (detect), capture-v1, peoplesnapshot, xhumans or humannerf.")] = "auto",
     max_size: Annotated[int, typer.Option(help="Resize images so the longer side is at most this many pixels.", min=16)] = 512,
     grid_resolution: Annotated[
-        str, typer.Option(help="Skinning-weight grid D,H,W (z,y,x) in canonical space, or auto: 64 cells along the "
-                               "body's height and width and 16 along its depth (64,16,64 for Anny's +Z-up world, "
-                               "16,64,64 for SMPL's +Y-up one).")
-    ] = "auto",
+        str, typer.Option(help="Skinning-weight grid D,H,W (z,y,x) in canonical space.")
+    ] = "64,16,64",
     weight_smoothing: Annotated[Optional[int], typer.Option(
         help="Blur passes over the skinning-weight grid \\[default: 15 for a body model's template, 2 for a bare "
              "skeleton's bone weights]; fewer keeps the weights sharp where limbs meet.", min=0)] = None,

@@ -64,8 +64,6 @@ from stages.resources import peak_ram_bytes
 from stages.video import VideoOptions, run_video_capture
 
 CONTACT_SHEET_FRAMES = 12
-#: The manifest's `grid_resolution` when the grid follows the body's axes (the data records the cells).
-AUTO_GRID = "auto: 64 cells along the body's height and width, 16 along its depth"
 
 
 @dataclass(frozen=True)
@@ -76,8 +74,7 @@ class PreprocessOptions:
     out: Path
     input_format: str = "auto"
     max_size: int = 512
-    #: The skinning grid's D,H,W; None: 64 cells along the body's height and width, 16 along its depth.
-    grid_resolution: tuple[int, int, int] | None = None
+    grid_resolution: tuple[int, int, int] = (64, 16, 64)
     weight_smoothing: int | None = None
     weight_spread: float | None = None
     anny_cache: Path | None = None
@@ -92,7 +89,7 @@ class PreprocessOptions:
         """The options that change the dataset (recorded in the manifest, compared to skip)."""
         return {
             "input_format": self.input_format, "max_size": self.max_size,
-            "grid_resolution": AUTO_GRID if self.grid_resolution is None else list(self.grid_resolution), "box_margin_m": BOX_MARGIN_M, "grid_margin_m": GRID_MARGIN_M,
+            "grid_resolution": list(self.grid_resolution), "box_margin_m": BOX_MARGIN_M, "grid_margin_m": GRID_MARGIN_M,
             # Only when not the default, so that datasets made before the option keep their config.
             **({"shape_prior": self.shape_prior} if self.shape_prior != "auto" else {}),
             # The passes actually used, so that a change of the defaults makes a new dataset.
@@ -109,16 +106,14 @@ class PreprocessOptions:
         return WeightBlur(self.weight_smoothing, spread if spread else None)
 
 
-def parse_grid_resolution(text: str) -> tuple[int, int, int] | None:
-    """'64,16,64' -> (64, 16, 64), 'auto' -> None; InputError for anything else."""
-    if text.strip().lower() == "auto":
-        return None
+def parse_grid_resolution(text: str) -> tuple[int, int, int]:
+    """'64,16,64' -> (64, 16, 64); InputError for anything else."""
     try:
         values = tuple(int(v) for v in text.split(","))
     except ValueError:
         values = ()
     if len(values) != 3 or min(values) < 2:
-        raise InputError(f"--grid-resolution {text!r}: expected auto, or three integers >= 2 as D,H,W (e.g. 16,64,64)")
+        raise InputError(f"--grid-resolution {text!r}: expected three integers >= 2 as D,H,W (e.g. 64,16,64)")
     return values  # type: ignore[return-value]
 
 
@@ -275,7 +270,7 @@ def _dataset_data(capture: CaptureV1, input_format: str, subject: PosedSubject, 
         "joint_names": list(subject.skeleton.joint_names),
         "pose_dim": int(canonical.pose_condition.shape[1]),
         "skinning_grid": {
-            "resolution": list(prior.skinning_grid.shape[1:]),
+            "resolution": list(options.grid_resolution),
             "box_min": prior.box_min.tolist(), "box_max": prior.box_max.tolist(),
         },
         "canonical_box": prior.canonical_box().tolist(),

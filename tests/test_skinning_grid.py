@@ -12,7 +12,6 @@ from igavatar.skinning.grid import (
     blended_transform_grid,
     build_skinning_grid,
     canonical_grid_box,
-    depth_axis_resolution,
     distance_adaptive_weights,
     grid_point_positions,
     inside_grid,
@@ -65,23 +64,6 @@ def test_canonical_grid_box_cube_and_squeezed_depth():
     box_min, box_max = canonical_grid_box(vertices.numpy(), squeeze_axis=1, squeeze=4.0)
     torch.testing.assert_close((box_max - box_min) / 2, torch.tensor([half, half / 4, half]))
     torch.testing.assert_close((box_max + box_min) / 2, center)
-
-
-def test_default_resolution_puts_its_fewest_cells_along_the_body_depth():
-    """(D, H, W) = (z, y, x): a +Z-up body facing -Y (Anny) gets 16 cells in y, a +Y-up one (SMPL)
-    16 in z; the height keeps 64 either way."""
-    from igavatar.capture.shape_prior import grid_resolution_for
-
-    assert depth_axis_resolution(1) == (64, 16, 64)
-    assert depth_axis_resolution(2) == (16, 64, 64)
-    assert depth_axis_resolution(0, cells=32, depth_cells=8) == (32, 32, 8)
-    with pytest.raises(InputError, match="depth_axis"):
-        depth_axis_resolution(3)
-    rng = np.random.default_rng(0)
-    body = torch.from_numpy(rng.uniform([-0.8, -0.15, -0.9], [0.8, 0.15, 0.8], (500, 3))).float()  # +Z up, thin in y
-    assert grid_resolution_for(None, body) == (64, 16, 64)
-    assert grid_resolution_for(None, body[:, [0, 2, 1]]) == (16, 64, 64)  # the same body +Y up
-    assert grid_resolution_for((8, 8, 8), body) == (8, 8, 8)  # given: used as given
 
 
 def test_canonical_grid_box_margin_keeps_room_behind_a_deep_body():

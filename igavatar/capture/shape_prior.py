@@ -1,9 +1,9 @@
 """The canonical shape prior of a dataset and the skinning grid sized from it: the body model's
 template, the masks' visual hull (a bare skeleton, loose clothing) or capsules around the bones.
 
-    prior = body_prior(subject, canonical, None, WeightBlur())          # template or capsules; grid by the body's depth
-    views = hull_views(capture, canonical, "auto")                     # frames whose masks vote
-    prior = hull_prior(subject, canonical, views, masks, K, w2c, None, WeightBlur()) or prior
+    prior = body_prior(subject, canonical, (64, 16, 64), WeightBlur())          # template or capsules
+    views = hull_views(capture, canonical, "auto")                             # frames whose masks vote
+    prior = hull_prior(subject, canonical, views, masks, K, w2c, (64, 16, 64), WeightBlur()) or prior
 
 The constants are the measured policy (`preprocess` records the versions in its manifest so that
 a change redoes the dataset); docs/DESIGN.md "Geometry" and docs/RESEARCH.md give the measurements.
@@ -26,7 +26,7 @@ from igavatar.capture.segment import PosedBody
 from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_cells, hull_prior_mesh, search_box, spread_views
 from igavatar.errors import InputError
 from igavatar.skinning.bone_weights import BoneWeightConfig, build_bone_skinning_grid
-from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box, depth_axis_resolution, sample_skinning_weights
+from igavatar.skinning.grid import build_skinning_grid, canonical_grid_box, sample_skinning_weights
 
 #: Margin (meters) around the template for clothing, hair and loose garments.
 BOX_MARGIN_M = 0.12
@@ -79,12 +79,6 @@ class WeightBlur:
 def squeeze_axis(vertices: torch.Tensor) -> int:
     """The body's thinnest axis (its depth in canonical space: Y for Anny, Z for SMPL)."""
     return int((vertices.amax(0) - vertices.amin(0)).argmin())
-
-
-def grid_resolution_for(resolution: tuple[int, int, int] | None, points: torch.Tensor) -> tuple[int, int, int]:
-    """`resolution` (D, H, W) when given, else the default with its fewest cells along the depth of
-    the body these (N, 3) canonical points outline (igavatar.skinning.grid.depth_axis_resolution)."""
-    return resolution if resolution is not None else depth_axis_resolution(squeeze_axis(points))
 
 
 def segmentation_body(subject: PosedSubject, canonical: CanonicalSubject, index: int) -> PosedBody:
@@ -144,10 +138,9 @@ def weights_grid(subject: PosedSubject, canonical: CanonicalSubject, box_min: to
     return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, resolution, config)
 
 
-def body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int] | None,
+def body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int],
                 blur: WeightBlur) -> ShapePrior:
-    """The body model's template, or for a bare skeleton capsules around its bones; `resolution`
-    None sizes the weight grid by the body's depth axis (grid_resolution_for)."""
+    """The body model's template, or for a bare skeleton capsules around its bones."""
     if canonical.template_vertices is not None:
         vertices, faces, kind = canonical.template_vertices, subject.template_faces, "template"
         posed_boxes = canonical.posed_template_boxes
@@ -156,8 +149,7 @@ def body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: t
         vertices, faces, kind = capsules.vertices, capsules.faces, "capsules"
         posed_boxes = capsules.posed_boxes  # joints alone miss the crown, hands and feet
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=squeeze_axis(vertices), margin=GRID_MARGIN_M)
-    grid = weights_grid(subject, canonical, box_min, box_max, grid_resolution_for(resolution, vertices), blur)
-    return ShapePrior(vertices, faces, kind, box_min, box_max, grid, padded_boxes(posed_boxes))
+    return ShapePrior(vertices, faces, kind, box_min, box_max, weights_grid(subject, canonical, box_min, box_max, resolution, blur), padded_boxes(posed_boxes))
 
 
 def hull_prior(
@@ -167,7 +159,7 @@ def hull_prior(
     masks: dict[int, np.ndarray],
     K: np.ndarray,
     w2c: np.ndarray,
-    resolution: tuple[int, int, int] | None,
+    resolution: tuple[int, int, int],
     blur: WeightBlur,
 ) -> ShapePrior | None:
     """The masks' visual hull as the shape prior, or None when the masks keep nothing.
@@ -178,7 +170,7 @@ def hull_prior(
     posed boxes.
     """
     lo, hi = search_box(canonical.canonical_joints)
-    search_weights = weights_grid(subject, canonical, lo, hi, grid_resolution_for(resolution, canonical.canonical_joints), blur)
+    search_weights = weights_grid(subject, canonical, lo, hi, resolution, blur)
     skin = grid_skin(search_weights, lo, hi, canonical.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
     # Cells that ride rigidly into another limb (ghost legs beside spread canonical legs) are dropped.
@@ -193,7 +185,7 @@ def hull_prior(
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE,
                                           margin=GRID_MARGIN_M)
-    grid = weights_grid(subject, canonical, box_min, box_max, grid_resolution_for(resolution, vertices), blur)
+    grid = weights_grid(subject, canonical, box_min, box_max, resolution, blur)
     skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
     posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
     posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])

@@ -27,7 +27,6 @@ from igavatar.geometry.boxes import check_box
 
 __all__ = [
     "canonical_grid_box",
-    "depth_axis_resolution",
     "grid_point_positions",
     "build_skinning_grid",
     "smooth_weights_grid",
@@ -100,25 +99,6 @@ def canonical_grid_box(
     if not bool((half_sizes > 0).all()):
         raise InputError("vertices_canonical: all vertices coincide; the box would be empty")
     return center - half_sizes, center + half_sizes
-
-
-#: Cells along a body's height and width, and along its depth (Fast-SNARF's 64 and 64 // 4).
-GRID_CELLS, GRID_DEPTH_CELLS = 64, 16
-
-
-def depth_axis_resolution(depth_axis: int, cells: int = GRID_CELLS, depth_cells: int = GRID_DEPTH_CELLS) -> tuple[int, int, int]:
-    """The grid resolution (D, H, W) = (z, y, x) with `depth_cells` along world axis `depth_axis`
-    (0 x, 1 y, 2 z; the body's depth, the axis `canonical_grid_box` squeezes) and `cells` along the
-    other two: (64, 16, 64) for a +Z-up body facing -Y (Anny), (16, 64, 64) for a +Y-up one (SMPL).
-
-    A fixed (64, 16, 64) put a +Y-up body's 16 cells along its height (13 cm cells): the weights
-    blurred over the knees and the root finding's starts lost 13 % of a standing leg.
-    """
-    if depth_axis not in (0, 1, 2):
-        raise InputError(f"depth_axis: {depth_axis!r}, expected 0, 1 or 2")
-    per_axis = [cells, cells, cells]
-    per_axis[depth_axis] = depth_cells
-    return per_axis[2], per_axis[1], per_axis[0]
 
 
 def grid_point_positions(
