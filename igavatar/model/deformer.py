@@ -9,8 +9,9 @@ every posed point from several starts (`x_d` rigidly un-posed by each init bone)
 "good" update of the inverse Jacobian, initialized at `(sum_j w_j R_j)^-1` (dw/dx ignored, as
 Fast-SNARF). A root is valid when it converged, lies inside the grid box and is not a duplicate of
 an earlier valid root of the same point. With `init_top_k` only the best-ranked starts are run; a
-point none of whose kept starts converged tries the rest (`fallback_starts`). Root finding runs without autograd; gradients come back
-through `attach_implicit_gradient` (implicit function theorem).
+point none of whose kept starts converged tries the rest (`fallback_starts`). Root finding runs
+without autograd; gradients come back through `attach_implicit_gradient` (implicit function
+theorem).
 
 Every method takes its frame data from the `PreparedFrame` it is given: no state is kept between
 calls, and tensors may live on any device.
