@@ -579,7 +579,7 @@ class FastSnarfDeformer(nn.Module):
         slots = min(valid.shape[1], rest.shape[1])
         # Converged roots first, each group in rank order (a stable sort on "not converged").
         pick = torch.sort((~rest_valid).to(torch.uint8), dim=1, stable=True).indices[:, :slots]
-        x_root, valid = x_root.clone(), valid.clone()
+        # In place: both tensors are this chunk's own, fresh from `_solve`.
         x_root[lost, :slots] = torch.gather(rest_root, 1, pick.unsqueeze(-1).expand(-1, -1, 3))
         valid[lost, :slots] = torch.gather(rest_valid, 1, pick)
         return x_root, valid

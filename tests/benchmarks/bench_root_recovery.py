@@ -30,14 +30,15 @@ sys.path.insert(0, str(ROOT / "tests" / "benchmarks"))
 from provenance import commit  # noqa: E402
 
 from igavatar.avatar.dataset import read_dataset  # noqa: E402
-from igavatar.model.deformer import FastSnarfDeformer, init_parts  # noqa: E402
+from igavatar.avatar.model import build_avatar  # noqa: E402
+from igavatar.model.deformer import DeformerConfig, FastSnarfDeformer  # noqa: E402
 from igavatar.training.config import preset  # noqa: E402
 
 RESULTS = ROOT / "tests" / "benchmarks" / "results"
 RECOVERED_M = 1e-3
 
 
-def policies(base) -> dict:
+def policies(base: DeformerConfig) -> dict[str, DeformerConfig]:
     """The deformer configurations compared, from the preset's."""
     return {"top2": dataclasses.replace(base, fallback_starts=False), "top2+fallback": base,
             "top4+fallback": dataclasses.replace(base, init_top_k=4), "all": dataclasses.replace(base, init_top_k=None)}
@@ -58,21 +59,21 @@ def main() -> None:
     parser.add_argument("--name", required=True)
     args = parser.parse_args()
     dataset = read_dataset(args.dataset)
-    subject = np.load(args.dataset / "subject.npz")
+    subject = dataset.subject
     frames = dataset.frames()
     picked = np.linspace(0, frames.n_frames - 1, min(args.frames, frames.n_frames)).round().astype(int)
     vertices = torch.from_numpy(np.asarray(trimesh.load(args.dataset / "template.ply", process=False).vertices, np.float32))
-    base = dataclasses.replace(preset("cpu").avatar.deformer, init_bones=tuple(int(b) for b in subject["init_bones"]),
-                               init_parts=init_parts(subject["parents"], subject["init_bones"]))
+    cpu = preset("cpu")
     table = {}
-    for name, config in policies(base).items():
-        deformer = FastSnarfDeformer(torch.from_numpy(subject["skinning_grid"]), torch.from_numpy(subject["grid_box_min"]),
-                                     torch.from_numpy(subject["grid_box_max"]), config)
+    for name, config in policies(cpu.avatar.deformer).items():
+        # The deformer exactly as a model of this dataset builds it (grid, box, start bones and parts).
+        avatar_config = dataclasses.replace(cpu.avatar, deformer=config)
+        deformer = build_avatar(dataclasses.replace(cpu, avatar=avatar_config), subject, dataset.data["pose_dim"]).deformer
         table[name] = [recovery(deformer, vertices, frames.bone_transforms[i]) for i in picked]
     command = "python tests/benchmarks/bench_root_recovery.py " + shlex.join(sys.argv[1:])
     names = [frames.names[i] for i in picked]
     lines = [f"# Root recovery of the template: {args.name}", "", f"Commit: `{commit()}`. Command:", "", f"    {command}", "",
-             f"Dataset `{args.dataset}` (skinning grid {list(subject['skinning_grid'].shape[1:])} as D,H,W; "
+             f"Dataset `{args.dataset}` (skinning grid {list(subject.skinning_grid.shape[1:])} as D,H,W; "
              f"{len(vertices)} template vertices); share of the vertices root-found back within {RECOVERED_M * 1000:.0f} mm.", "",
              "| policy | mean | worst frame | " + " | ".join(names) + " |", "|---" * (len(names) + 3) + "|"]
     for name, values in table.items():
