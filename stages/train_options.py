@@ -35,6 +35,10 @@ class TrainOptions:
     smooth_form: str | None = None
     beta_init: float | None = None
     beta_final: float | None = None
+    #: Share of training over which the beta cap reaches beta_final; None: the preset's.
+    beta_anneal_fraction: float | None = None
+    #: Power of the learning rate's polynomial decay; None: the preset's.
+    lr_decay_power: float | None = None
     free_space_weight: float | None = None
     body_inside_weight: float | None = None
     smooth_band: float | None = None
@@ -116,7 +120,20 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:
             raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
-    return _color_options(config, options)
+    return _color_options(_schedule_options(config, options), options)
+
+
+def _schedule_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
+    """--beta-anneal-fraction and --lr-decay-power over the preset's."""
+    if options.beta_anneal_fraction is not None:
+        if not 0.0 < options.beta_anneal_fraction <= 1.0:
+            raise InputError(f"--beta-anneal-fraction {options.beta_anneal_fraction}: expected a share of training in (0, 1]")
+        config = dataclasses.replace(config, beta_anneal_fraction=options.beta_anneal_fraction)
+    if options.lr_decay_power is not None:
+        if not 0.0 <= options.lr_decay_power <= 10.0:
+            raise InputError(f"--lr-decay-power {options.lr_decay_power}: expected a power in [0, 10] (0: no decay)")
+        config = dataclasses.replace(config, lr_decay_power=options.lr_decay_power)
+    return config
 
 
 def with_outline_px(config: TrainConfig, image_size_hw: tuple[int, int]) -> TrainConfig:

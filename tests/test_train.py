@@ -294,10 +294,13 @@ def test_free_space_term_trains_and_new_options_are_checked(small_run, cli_runne
     assert bool((trainer.canonical_grid.occupied | ~trainer._hull_cells()).all())
 
     resolved = resolve_config(TrainOptions(dataset=small_run / "dataset", out=tmp_path / "m", preset="tiny", beta_init=0.02,
-                                           beta_final=0.001, free_space_weight=0.5, smooth_form="released"))
+                                           beta_final=0.001, free_space_weight=0.5, smooth_form="released",
+                                           beta_anneal_fraction=0.5, lr_decay_power=1.0))
     assert resolved.avatar.density.beta_init == 0.02 and resolved.beta_final == 0.001
+    assert resolved.beta_anneal_fraction == 0.5 and resolved.lr_decay_power == 1.0
     assert resolved.loss_weights.free_space == 0.5 and resolved.smooth_form == "released"
-    for flags in (["--beta-final", "0.5"], ["--smooth-form", "squared"], ["--free-space-weight", "-1"], ["--smooth-band", "0"]):
+    for flags in (["--beta-final", "0.5"], ["--smooth-form", "squared"], ["--free-space-weight", "-1"], ["--smooth-band", "0"],
+                  ["--beta-anneal-fraction", "0"], ["--lr-decay-power", "-1"]):
         result = cli_runner.invoke(app, ["train", "--dataset", str(small_run / "dataset"), "--out", str(tmp_path / "bad"),
                                          "--preset", "tiny", *flags])
         assert result.exit_code != 0 and flags[0] in result.output and "Traceback" not in result.output
