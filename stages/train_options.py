@@ -96,18 +96,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
             raise InputError(f"--{name.replace('_', '-')}-weight {value}: must be >= 0")
     if weights:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
-    if options.body_inside_max_spill is not None:
-        if not 0 <= options.body_inside_max_spill <= 1:
-            raise InputError(f"--body-inside-max-spill {options.body_inside_max_spill}: expected a share of views in [0, 1] (1: no check)")
-        config = dataclasses.replace(config, body_inside_max_spill=options.body_inside_max_spill)
-    if options.error_sampling is not None:
-        if not 0.0 <= options.error_sampling <= 1.0:
-            raise InputError(f"--error-sampling {options.error_sampling}: expected a share in [0, 1]")
-        config = dataclasses.replace(config, error_sampling=options.error_sampling)
-    if options.outline_sampling is not None:
-        if not 0.0 <= options.outline_sampling <= 1.0:
-            raise InputError(f"--outline-sampling {options.outline_sampling}: expected a share in [0, 1]")
-        config = dataclasses.replace(config, outline_sampling=options.outline_sampling)
+    config = _ranged_options(config, options)
     if config.outline_sampling + config.error_sampling > 1.0:
         raise InputError(f"--outline-sampling {config.outline_sampling} and --error-sampling {config.error_sampling}: "
                          "together they share the subject's patches, so their sum must be <= 1")
@@ -120,19 +109,29 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         if not 1e-4 <= options.beta_final <= config.avatar.density.beta_init:
             raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
-    return _color_options(_schedule_options(config, options), options)
+    return _color_options(config, options)
 
 
-def _schedule_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
-    """--beta-anneal-fraction and --lr-decay-power over the preset's."""
-    if options.beta_anneal_fraction is not None:
-        if not 0.0 < options.beta_anneal_fraction <= 1.0:
-            raise InputError(f"--beta-anneal-fraction {options.beta_anneal_fraction}: expected a share of training in (0, 1]")
-        config = dataclasses.replace(config, beta_anneal_fraction=options.beta_anneal_fraction)
-    if options.lr_decay_power is not None:
-        if not 0.0 <= options.lr_decay_power <= 10.0:
-            raise InputError(f"--lr-decay-power {options.lr_decay_power}: expected a power in [0, 10] (0: no decay)")
-        config = dataclasses.replace(config, lr_decay_power=options.lr_decay_power)
+#: TrainOptions fields copied onto TrainConfig's field of that name after a range check:
+#: (field, lowest, highest, what the error says is expected).
+_RANGED_FIELDS: tuple[tuple[str, float, float, str], ...] = (
+    ("body_inside_max_spill", 0.0, 1.0, "a share of views in [0, 1] (1: no check)"),
+    ("error_sampling", 0.0, 1.0, "a share in [0, 1]"),
+    ("outline_sampling", 0.0, 1.0, "a share in [0, 1]"),
+    ("beta_anneal_fraction", 0.01, 1.0, "a share of training in [0.01, 1]"),
+    ("lr_decay_power", 0.0, 10.0, "a power in [0, 10] (0: no decay)"),
+)
+
+
+def _ranged_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
+    """The options of `_RANGED_FIELDS` that were given, checked, over the preset's."""
+    for field, lowest, highest, expected in _RANGED_FIELDS:
+        value = getattr(options, field)
+        if value is None:
+            continue
+        if not lowest <= value <= highest:
+            raise InputError(f"--{field.replace('_', '-')} {value}: expected {expected}")
+        config = dataclasses.replace(config, **{field: value})
     return config
 
 
