@@ -87,6 +87,9 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form, smooth_band=options.smooth_band,
         table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
         refine_poses=options.refine_poses, pose_lr=options.pose_lr, pose_prior_weight=options.pose_prior_weight,
+        body_inside_max_spill=options.body_inside_max_spill, error_sampling=options.error_sampling,
+        outline_sampling=options.outline_sampling, beta_anneal_fraction=options.beta_anneal_fraction,
+        lr_decay_power=options.lr_decay_power,
     )
     weights = {name: value for name, value in (("smooth", options.smooth_weight), ("free_space", options.free_space_weight),
                                                ("body_inside", options.body_inside_weight))
@@ -96,7 +99,6 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
             raise InputError(f"--{name.replace('_', '-')}-weight {value}: must be >= 0")
     if weights:
         config = dataclasses.replace(config, loss_weights=dataclasses.replace(config.loss_weights, **weights))
-    config = _ranged_options(config, options)
     if config.outline_sampling + config.error_sampling > 1.0:
         raise InputError(f"--outline-sampling {config.outline_sampling} and --error-sampling {config.error_sampling}: "
                          "together they share the subject's patches, so their sum must be <= 1")
@@ -110,29 +112,6 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
             raise InputError(f"--beta-final {options.beta_final}: expected meters in [1e-4, beta_init = {config.avatar.density.beta_init}]")
         config = dataclasses.replace(config, beta_final=options.beta_final)
     return _color_options(config, options)
-
-
-#: TrainOptions fields copied onto TrainConfig's field of that name after a range check:
-#: (field, lowest, highest, what the error says is expected).
-_RANGED_FIELDS: tuple[tuple[str, float, float, str], ...] = (
-    ("body_inside_max_spill", 0.0, 1.0, "a share of views in [0, 1] (1: no check)"),
-    ("error_sampling", 0.0, 1.0, "a share in [0, 1]"),
-    ("outline_sampling", 0.0, 1.0, "a share in [0, 1]"),
-    ("beta_anneal_fraction", 0.01, 1.0, "a share of training in [0.01, 1]"),
-    ("lr_decay_power", 0.0, 10.0, "a power in [0, 10] (0: no decay)"),
-)
-
-
-def _ranged_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
-    """The options of `_RANGED_FIELDS` that were given, checked, over the preset's."""
-    for field, lowest, highest, expected in _RANGED_FIELDS:
-        value = getattr(options, field)
-        if value is None:
-            continue
-        if not lowest <= value <= highest:
-            raise InputError(f"--{field.replace('_', '-')} {value}: expected {expected}")
-        config = dataclasses.replace(config, **{field: value})
-    return config
 
 
 def with_outline_px(config: TrainConfig, image_size_hw: tuple[int, int]) -> TrainConfig:

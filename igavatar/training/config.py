@@ -311,6 +311,17 @@ def preset(name: str) -> TrainConfig:
     raise InputError(f"--preset {name!r}: unknown; expected one of {', '.join(PRESETS)}")
 
 
+#: Fields `with_overrides` checks against a closed range: field -> (lowest, highest, what the
+#: error says is expected).
+_RANGES: dict[str, tuple[float, float, str]] = {
+    "body_inside_max_spill": (0.0, 1.0, "a share of views in [0, 1] (1: no check)"),
+    "error_sampling": (0.0, 1.0, "a share in [0, 1]"),
+    "outline_sampling": (0.0, 1.0, "a share in [0, 1]"),
+    "beta_anneal_fraction": (0.01, 1.0, "a share of training in [0.01, 1]"),
+    "lr_decay_power": (0.0, 10.0, "a power in [0, 10] (0: no decay)"),
+}
+
+
 def with_overrides(config: TrainConfig, **overrides) -> TrainConfig:
     """`config` with the given (non-None) fields replaced; InputError for bad values."""
     overrides = {k: v for k, v in overrides.items() if v is not None}
@@ -333,6 +344,9 @@ def with_overrides(config: TrainConfig, **overrides) -> TrainConfig:
         raise InputError(f"--pose-lr {overrides['pose_lr']}: must be > 0")
     if "pose_prior_weight" in overrides and overrides["pose_prior_weight"] < 0:
         raise InputError(f"--pose-prior-weight {overrides['pose_prior_weight']}: must be >= 0")
+    for name, (lowest, highest, expected) in _RANGES.items():
+        if name in overrides and not lowest <= overrides[name] <= highest:
+            raise InputError(f"--{name.replace('_', '-')} {overrides[name]}: expected {expected}")
     for name in ("steps", "rays_per_step", "samples_per_ray"):
         if name in overrides and overrides[name] < 1:
             raise InputError(f"--{name.replace('_', '-')} {overrides[name]}: must be >= 1")
