@@ -49,7 +49,7 @@ def train(
              "\\[default: off: on synthetic clips it has not yet improved the avatar at the cpu preset's steps, "
              "and it costs about a quarter more time a step].")] = None,
     pose_lr: Annotated[Optional[float], typer.Option(
-        help="Learning rate of the pose corrections \\[default: 0.002].")] = None,
+        help="Learning rate of the pose corrections when they start at half-way, falling linearly to 0 at the end \\[default: 0.002].")] = None,
     pose_prior_weight: Annotated[Optional[float], typer.Option(
         help="Weight that keeps the refined poses near the estimate \\[default: 0.01].")] = None,
     view: Annotated[bool, typer.Option(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from igavatar.avatar.dataset import read_dataset, training_data
@@ -101,3 +102,23 @@ def test_refinement_reduces_a_known_pose_error(small_run, tmp_path):
     moved_back = -float(refiner.translation[0].detach() @ sideways)
     # The correction points back along the shift and undoes a good part of it.
     assert moved_back > 0.02, refiner.translation[0]
+
+
+def test_pose_rate_falls_to_zero_by_the_end(small_run):
+    """The corrections' rate is pose_lr when refinement starts and falls linearly to 0 at the last
+    step, so the final poses are the ones the final avatar was fitted with (a constant rate kept
+    them walking after the avatar's own rate had decayed); a training step applies it."""
+    dataset = read_dataset(small_run / "dataset")
+    data = training_data(dataset)
+    config = dataclasses.replace(preset("tiny"), steps=100, refine_poses=True, pose_refine_start_fraction=0.5,
+                                 pose_lr=0.004, rays_per_step=64, patch_size=8, samples_per_ray=16,
+                                 occupancy_resolution=32, validate_every=0)
+    subject = dataset.subject
+    refiner = PoseRefiner(data.bone_transforms, subject.parents, subject.rest_joints, subject.canonical_rotations,
+                          data.train_indices)
+    trainer = Trainer(config, data, build_avatar(config, subject, dataset.pose_dim), "cpu", pose_refiner=refiner)
+    rates = [trainer.pose_learning_rate(step) for step in (0, 50, 75, 99, 100)]
+    assert rates == pytest.approx([0.004, 0.004, 0.002, 0.00008, 0.0])
+    trainer.step = 75
+    trainer.train_step()
+    assert trainer.pose_optimizer.param_groups[0]["lr"] == pytest.approx(0.002)

@@ -164,8 +164,9 @@ class TrainConfig:
     with the avatar (igavatar.training.pose_refine). Off in every preset: on synthetic clips (a
     video's fit, exact poses with 5 degrees of noise) it has not improved the avatar at 800 steps."""
     pose_lr: float = 0.002
-    """Learning rate of the pose corrections (radians, meters); each frame's are stepped only on
-    the steps that draw it (SparseAdam), about steps / training frames times."""
+    """Learning rate of the pose corrections (radians, meters) when they start, falling linearly to 0
+    at the end of training; each frame's are stepped only on the steps that draw it (SparseAdam),
+    about steps / training frames times."""
     pose_prior_weight: float = 0.01
     """Weight of the squared corrections (radians^2, and (meters / pose_translation_scale_m)^2)
     that keeps the refined poses near the estimate."""

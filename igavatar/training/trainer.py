@@ -138,10 +138,23 @@ class Trainer:
         anneal = max(1, int(self.config.beta_anneal_fraction * self.total_steps))
         return start * (end / start) ** min(1.0, step / anneal)
 
+    def pose_learning_rate(self, step: int) -> float:
+        """The pose corrections' rate at `step`: pose_lr from the refinement's start, falling linearly
+        to 0 at the end. A constant rate kept the corrections walking (Adam moves each entry by about
+        the rate on every visit, however noisy its gradient) after the avatar's own rate had decayed,
+        so the final poses fitted the final avatar worse than the estimates did
+        (tests/benchmarks/results/zju377-registration.md)."""
+        start = int(self.config.pose_refine_start_fraction * self.total_steps)
+        left = max(1, self.total_steps - start)
+        return self.config.pose_lr * min(1.0, max(0.0, (self.total_steps - step) / left))
+
     def _apply_schedule(self) -> None:
         factor = self.learning_rate_factor(self.step)
         for group, base in zip(self.param_groups(), self._base_lrs):
             group["lr"] = base * factor
+        if self.pose_optimizer is not None:
+            for group in self.pose_optimizer.param_groups:
+                group["lr"] = self.pose_learning_rate(self.step)
         start = int(self.config.nonrigid_start_fraction * self.total_steps)
         window = max(1, int(self.config.nonrigid_window_fraction * self.total_steps))
         self.avatar.nonrigid.set_enabled(self.step >= start)
