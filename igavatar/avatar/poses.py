@@ -117,7 +117,7 @@ def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps:
     frames = all_frames.select(chosen)
     bone_transforms = torch.from_numpy(frames.bone_transforms).float()
     posed_joints = torch.from_numpy(frames.posed_joints).float()
-    refined = _refined_frames(model, path, list(frames.names))
+    refined = refined_frames(model, path, list(frames.names))
     for slot, transforms in refined.items():
         # The model's own training frames: the poses it refined while training (train --refine-poses).
         bone_transforms[slot] = transforms
@@ -139,7 +139,7 @@ def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps:
     )
 
 
-def _refined_frames(model: ModelArtifact, dataset_path: Path, names: list[str]) -> dict[int, torch.Tensor]:
+def refined_frames(model: ModelArtifact, dataset_path: Path, names: list[str]) -> dict[int, torch.Tensor]:
     """Slot in `names` -> (J, 4, 4) refined transforms, for the frames the model refined, when
     `dataset_path` is the dataset the model was trained on (same manifest hash); else empty."""
     refined_file = model.path / REFINED_POSES_FILE

@@ -37,29 +37,17 @@ from provenance import command, commit
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from igavatar.avatar.dataset import read_dataset  # noqa: E402
 from igavatar.avatar.model import load_model  # noqa: E402
+from igavatar.avatar.poses import refined_frames  # noqa: E402
 from igavatar.metrics.image import mask_bbox  # noqa: E402
 from igavatar.render.rays import pixel_grid, pixel_rays, rays_in_box  # noqa: E402
 from igavatar.render.sampler import sample_along_rays  # noqa: E402
 from igavatar.render.volume import render_rays  # noqa: E402
 
 
-def frame_bones(model, frames, index: int, use_refined: bool = True) -> tuple[torch.Tensor, bool]:
-    """(J, 4, 4) bone transforms of dataset frame `index`: the model's refined ones when it has them
-    (and `use_refined`), else the dataset's; and whether they are the refined ones."""
-    name = frames.names[index]
-    refined = model.path / "refined_poses.npz"
-    if use_refined and refined.is_file():
-        stored = np.load(refined)
-        names = [str(n) for n in stored["frame_names"]]
-        if name in names:
-            return torch.from_numpy(stored["bone_transforms"][names.index(name)]), True
-    return torch.from_numpy(frames.bone_transforms[index]), False
-
-
-def render_maps(model, frames, index: int, size_hw: tuple[int, int], samples: int,
-                use_refined: bool) -> dict[str, np.ndarray]:
-    """(H, W[, 3]) composite rgb on white, opacity, and the heaviest sample's colour of one frame."""
-    bones, _ = frame_bones(model, frames, index, use_refined)
+def render_maps(model, frames, index: int, bones: torch.Tensor, size_hw: tuple[int, int],
+                samples: int) -> dict[str, np.ndarray]:
+    """(H, W[, 3]) composite rgb on white, opacity, and the heaviest sample's colour of dataset frame
+    `index` posed by (J, 4, 4) `bones`."""
     posed = model.posed(bones, torch.from_numpy(frames.pose_condition[index]))
     box = torch.from_numpy(frames.posed_boxes[index]).float()
     grid = posed.occupancy(model.canonical_grid, box, model.config.occupancy_resolution)
@@ -133,16 +121,18 @@ def main() -> None:
     model = load_model(args.model)
     dataset = read_dataset(args.dataset or model.recorded_dataset)
     frames = dataset.frames()
+    # The model's refined training poses, by frame slot (none when it refined none or was trained on another dataset).
+    refined = {} if args.dataset_poses else refined_frames(model, dataset.path, list(frames.names))
     records = {}
     for name in args.frames:
         if name not in frames.names:
             raise SystemExit(f"{name}: no such frame in {dataset.path}")
         index = frames.names.index(name)
         image, mask = dataset.image_on_white(name, dataset.image_size)
-        maps = render_maps(model, frames, index, dataset.image_size, args.samples, not args.dataset_poses)
+        bones = refined.get(index, torch.from_numpy(frames.bone_transforms[index]))
+        maps = render_maps(model, frames, index, bones, dataset.image_size, args.samples)
         split = "train" if name in dataset.splits.get("train", []) else "test"
-        records[name] = {"split": split, "refined_pose": frame_bones(model, frames, index, not args.dataset_poses)[1],
-                         **frame_record(maps, image, mask)}
+        records[name] = {"split": split, "refined_pose": index in refined, **frame_record(maps, image, mask)}
         print(name, json.dumps(records[name]))
         if args.maps is not None:
             args.maps.mkdir(parents=True, exist_ok=True)
