@@ -59,6 +59,18 @@ def test_training_is_deterministic_with_a_seed(small_run):
         assert np.array_equal(value, second[key]), key
 
 
+def test_a_checkpoint_keeps_empty_dicts_and_lists(tmp_path):
+    """An optimizer that has not stepped has an empty "state" (load_state_dict needs the key), and a
+    run's list of pose passes starts empty: both come back as they went in."""
+    optimizer = torch.optim.Adam([torch.nn.Parameter(torch.zeros(3))], lr=0.1)
+    state = {"optimizer": optimizer.state_dict(), "passes": [], "done": [{"step": 3, "kept": 2.5}], "none": None}
+    save_state(tmp_path / "state.npz", state)
+    loaded = load_state(tmp_path / "state.npz")
+    assert loaded["optimizer"]["state"] == {} and loaded["passes"] == []  # (tuples come back as lists)
+    assert loaded["done"] == [{"step": 3, "kept": 2.5}] and loaded["none"] is None
+    optimizer.load_state_dict(loaded["optimizer"])
+
+
 @pytest.mark.parametrize("overrides", [{}, {"error_sampling": 1.0}], ids=["uniform", "error-map"])
 def test_resume_continues_exactly(small_run, tmp_path, overrides):
     straight = _trainer(small_run / "dataset", steps=4, **overrides)

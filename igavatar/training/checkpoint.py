@@ -4,7 +4,9 @@
     state = load_state(path)        # the same nesting, tensors back as torch tensors
 
 Keys are joined with '/'; ints, floats and strings are stored as 0-d arrays and come back as
-Python scalars, so an optimizer's state_dict survives the round trip exactly.
+Python scalars, so an optimizer's state_dict survives the round trip exactly. Empty dicts and
+lists are recorded too: an optimizer that has not stepped yet has an empty "state", which
+load_state_dict requires.
 """
 
 from __future__ import annotations
@@ -21,12 +23,15 @@ from igavatar.artifacts.atomic import atomic_write_bytes
 _TENSOR = "t:"
 _SCALAR = "s:"
 _LIST = "l:"
+_EMPTY_DICT = "d:"
 
 
 def flatten(value: Any, prefix: str = "") -> dict[str, np.ndarray]:
     """Nested dicts/lists of tensors and scalars -> {'a/b/c': array} with type-tagged keys."""
     flat: dict[str, np.ndarray] = {}
     if isinstance(value, dict):
+        if not value and prefix:
+            flat[f"{_EMPTY_DICT}{prefix[:-1]}"] = np.array(0)
         for key, item in value.items():
             flat.update(flatten(item, f"{prefix}{key}/"))
     elif isinstance(value, (list, tuple)):
@@ -49,6 +54,12 @@ def _insert(tree: dict, path: list[str], value: Any) -> None:
     tree[path[-1]] = value
 
 
+def _ensure_node(tree: dict, path: list[str]) -> None:
+    """An (empty) dict at `path` unless something is there: where an empty dict or list goes."""
+    for part in path:
+        tree = tree.setdefault(part, {})
+
+
 def _listify(tree: Any, lists: set[str], prefix: str = "") -> Any:
     if not isinstance(tree, dict):
         return tree
@@ -65,6 +76,10 @@ def unflatten(flat: dict[str, np.ndarray]) -> dict:
     for key, array in flat.items():
         if key.startswith(_LIST):
             lists.add(key[len(_LIST):-len("len")])
+            if key != f"{_LIST}len":
+                _ensure_node(tree, key[len(_LIST):-len("/len")].split("/"))
+        elif key.startswith(_EMPTY_DICT):
+            _ensure_node(tree, key[len(_EMPTY_DICT):].split("/"))
         elif key.startswith(_TENSOR):
             _insert(tree, key[len(_TENSOR):].split("/"), torch.from_numpy(np.array(array)))
         elif key.startswith(_SCALAR):
