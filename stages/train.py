@@ -168,6 +168,10 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_ch
             advance(trainer.step)
             while trainer.step < trainer.total_steps:
                 raise_if_interrupted()  # one a library swallowed (trimesh catches BaseException)
+                if trainer.pose_align_due():
+                    # Minutes long, so not deferred: an interrupt undoes the whole pass (pose_align).
+                    progress.status(f"step {trainer.step}: fitting each training frame's pose to its image")
+                    trainer.align_poses()
                 # A step is whole or not at all: an interrupt inside it (after the optimizer, before
                 # the step count) would checkpoint half a step, and --resume would not be exact.
                 with deferred_interrupts():
@@ -220,7 +224,9 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
         "validation_scale": config.validation_scale,
         **({"body_inside": trainer.body_inside_check} if trainer.body_inside_check is not None else {}),
         **({"pose_refinement": {"frames": len(trainer.pose_refiner.frames), "file": REFINED_POSES_FILE,
-                                **{k: round(v, 4) for k, v in trainer.pose_refiner.correction_magnitudes().items()}}}
+                                **{k: round(v, 4) for k, v in trainer.pose_refiner.correction_magnitudes().items()},
+                                "passes": [{k: round(v, 5) if isinstance(v, float) else v for k, v in report.items()}
+                                           for report in trainer.pose_align_reports]}}
            if trainer.pose_refiner is not None else {}),
     }
 

@@ -176,6 +176,13 @@ class TrainConfig:
     """Ray samples per step whose pose gradient is computed (scaled to stand for all of them)."""
     pose_refine_start_fraction: float = 0.5
     """Pose corrections are stepped from this fraction of training on, once the shape has formed."""
+    pose_align_fractions: tuple[float, ...] = (0.3, 0.6)
+    """With refine_poses: at these fractions of training every training frame's pose is fitted to
+    its whole image, the avatar frozen (igavatar.training.pose_align); () for none."""
+    pose_align_steps: int = 16
+    """Steps of one frame's pose fit in such a pass (each costs about a training step)."""
+    pose_align_lr: float = 0.004
+    """Adam's rate of that fit (radians, meters): 16 steps can move a joint by up to about 3.7 degrees."""
     shape_init_steps: int = 1000
     """Steps fitting the SDF to the template's SDF before photometric training (0 = sphere)."""
     shape_init_points: int = 16384

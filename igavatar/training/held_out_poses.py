@@ -122,11 +122,12 @@ class _Frame:
         return sample_patch_pixels(self.mask_pixels, self.size_hw, n_patches, c.patch_size, c.patch_centres_in_mask,
                                    generator)
 
-    def loss(self, avatar: Avatar, canonical_grid: OccupancyGrid, refiner: PoseRefiner, pixels: torch.Tensor,
+    def loss(self, avatar: Avatar, canonical_grid: OccupancyGrid, refiner: PoseRefiner, index: int, pixels: torch.Tensor,
              generator: torch.Generator, with_gradient: bool) -> torch.Tensor:
-        """Training's photometric + mask loss on `pixels` (random background) in the refined pose."""
+        """Training's photometric + mask loss on `pixels` (random background) in the pose refiner
+        gives dataset frame `index`."""
         c, device = self.config, self.K.device
-        prepared = avatar.deformer.prepare(refiner.bone_transforms(0).to(device))
+        prepared = avatar.deformer.prepare(refiner.bone_transforms(index).to(device))
         posed = PosedAvatar(avatar, prepared, self.pose_condition)
         grid = posed.occupancy(canonical_grid, self.posed_box, c.occupancy_resolution)
         target_rgb = self.image[pixels[:, 1], pixels[:, 0]]
@@ -146,11 +147,11 @@ class _Frame:
         return weights.rgb * rgb_loss(out.rgb, target) + weights.alpha * alpha_loss(out.opacity, target_mask)
 
 
-def _check_loss(frame: _Frame, avatar: Avatar, grid: OccupancyGrid, refiner: PoseRefiner, pixels: torch.Tensor,
-                seed: int) -> float:
+def _check_loss(frame: _Frame, avatar: Avatar, grid: OccupancyGrid, refiner: PoseRefiner, index: int,
+                pixels: torch.Tensor, seed: int) -> float:
     """The loss on a fixed pixel set with a fixed background and samples (comparable before/after)."""
     with torch.no_grad():
-        return float(frame.loss(avatar, grid, refiner, pixels, torch.Generator().manual_seed(seed), False))
+        return float(frame.loss(avatar, grid, refiner, index, pixels, torch.Generator().manual_seed(seed), False))
 
 
 def refine_frame_pose(avatar: Avatar, canonical_grid: OccupancyGrid, subject: SkeletonArrays, frame: HeldOutFrame,
@@ -163,13 +164,42 @@ def refine_frame_pose(avatar: Avatar, canonical_grid: OccupancyGrid, subject: Sk
         model_config: the model's TrainConfig (rays, patches, samples, loss weights as trained).
     """
     device = avatar.canonical_box.device
-    data = _Frame(frame, device, model_config)
-    if data.mask_pixels.shape[0] == 0:
-        given = np.asarray(frame.bone_transforms, np.float32)
-        return RefinedPose(given, False, 0.0, 0.0, math.nan, math.nan)
     joints = np.union1d([0], subject.init_bones)
     refiner = PoseRefiner(torch.from_numpy(np.asarray(frame.bone_transforms, np.float32))[None], subject.parents,
                           subject.rest_joints, subject.canonical_rotations, torch.tensor([0]), joints).to(device)
+    fit = optimise_frame_pose(avatar, canonical_grid, refiner, 0, frame, config, model_config, seed)
+    transforms = refiner.all_bone_transforms()[0].float().cpu().numpy() if fit.kept else \
+        np.asarray(frame.bone_transforms, np.float32)
+    return RefinedPose(transforms, fit.kept, fit.rotation_deg, fit.root_mm, fit.loss_before, fit.loss_after)
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """One frame's pose fit: the fixed pixel set's loss before and after, whether the corrections
+    were kept, and the corrections found (mean joint rotation in degrees, root shift in mm)."""
+
+    loss_before: float
+    loss_after: float
+    kept: bool
+    rotation_deg: float
+    root_mm: float
+
+
+def optimise_frame_pose(avatar: Avatar, canonical_grid: OccupancyGrid, refiner: PoseRefiner, index: int,
+                        frame: HeldOutFrame, config: HeldOutPoseConfig, model_config: TrainConfig,
+                        seed: int = 0) -> FrameFit:
+    """Step dataset frame `index`'s corrections in `refiner` against `frame`'s image, the avatar frozen;
+    put them back as they were unless the loss on a fixed set of the frame's pixels went down.
+
+    `frame.bone_transforms` is not read: the pose is the refiner's. Every other frame's corrections
+    are left exactly as they were (a fresh Adam moves no entry whose gradient was always 0).
+    An empty mask leaves the corrections alone (losses nan, not kept).
+    """
+    data = _Frame(frame, avatar.canonical_box.device, model_config)
+    if data.mask_pixels.shape[0] == 0:
+        return FrameFit(math.nan, math.nan, False, 0.0, 0.0)
+    slot = int(refiner.slots[index])
+    start = refiner.rotation.detach()[slot].clone(), refiner.translation.detach()[slot].clone()
     generator = torch.Generator().manual_seed(seed)
     n_patches = max(1, model_config.rays_per_step // model_config.patch_size**2)
     check_pixels = data.pixels(config.check_patches, torch.Generator().manual_seed(seed + 1))
@@ -179,22 +209,25 @@ def refine_frame_pose(avatar: Avatar, canonical_grid: OccupancyGrid, subject: Sk
     try:
         for p in frozen:
             p.requires_grad_(False)
-        before = _check_loss(data, avatar, canonical_grid, refiner, check_pixels, seed + 2)
+        before = _check_loss(data, avatar, canonical_grid, refiner, index, check_pixels, seed + 2)
         optimizer = torch.optim.Adam(refiner.parameters(), lr=config.learning_rate)
         for _ in range(config.steps):
-            loss = data.loss(avatar, canonical_grid, refiner, data.pixels(n_patches, generator), generator, True)
-            loss = loss + refiner.regularization(0, config.prior_weight, config.translation_scale_m)
+            loss = data.loss(avatar, canonical_grid, refiner, index, data.pixels(n_patches, generator), generator, True)
+            loss = loss + refiner.regularization(index, config.prior_weight, config.translation_scale_m)
             optimizer.zero_grad(set_to_none=True)
             if loss.requires_grad:
                 loss.backward()
                 optimizer.step()
-        after = _check_loss(data, avatar, canonical_grid, refiner, check_pixels, seed + 2)
+        after = _check_loss(data, avatar, canonical_grid, refiner, index, check_pixels, seed + 2)
     finally:
         for p in frozen:
             p.requires_grad_(True)
         avatar.train(mode)
-    magnitudes = refiner.correction_magnitudes()
-    kept = after < before
-    transforms = refiner.all_bone_transforms()[0].float().cpu().numpy() if kept else \
-        np.asarray(frame.bone_transforms, np.float32)
-    return RefinedPose(transforms, kept, magnitudes["pose_rot_deg"], magnitudes["pose_root_mm"], before, after)
+    with torch.no_grad():
+        rotation_deg = math.degrees(float(refiner.rotation[slot].norm(dim=-1).mean()))
+        root_mm = 1000 * float(refiner.translation[slot].norm())
+        kept = after < before
+        if not kept:
+            refiner.rotation[slot] = start[0]
+            refiner.translation[slot] = start[1]
+    return FrameFit(before, after, kept, rotation_deg, root_mm)

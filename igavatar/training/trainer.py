@@ -44,6 +44,7 @@ from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
 from igavatar.training.outline import outline_rays, weights_gradient_scale
 from igavatar.training.error_map import ErrorMap
+from igavatar.training.pose_align import align_training_poses, pass_steps
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
@@ -99,6 +100,8 @@ class Trainer:
         self.pose_refiner = None if pose_refiner is None else pose_refiner.to(self.device)
         self.pose_optimizer = None if pose_refiner is None else SparseAdam(
             self.pose_refiner.parameters(), lr=config.pose_lr, betas=(0.9, 0.99), eps=1e-8)
+        # The whole-frame pose passes done (pose_align), at the steps pose_align_steps_at() names.
+        self.pose_align_reports: list[dict] = []
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
         self.error_map = None if config.error_sampling <= 0 else ErrorMap(
             int(data.images.shape[0]), data.image_size, config.error_cell_px)
@@ -147,6 +150,26 @@ class Trainer:
         start = int(self.config.pose_refine_start_fraction * self.total_steps)
         left = max(1, self.total_steps - start)
         return self.config.pose_lr * min(1.0, max(0.0, (self.total_steps - step) / left))
+
+    def pose_align_steps_at(self) -> list[int]:
+        """The steps before which a whole-frame pose pass runs (none without pose refinement)."""
+        return [] if self.pose_refiner is None else pass_steps(self.config, self.total_steps)
+
+    def pose_align_due(self) -> bool:
+        """Whether the next pose pass is due before the next step."""
+        at = self.pose_align_steps_at()
+        done = len(self.pose_align_reports)
+        return done < len(at) and self.step >= at[done]
+
+    def align_poses(self) -> dict:
+        """Run the due whole-frame pose pass (igavatar.training.pose_align); returns its summary
+        (kept in pose_align_reports). All or nothing: interrupted, it leaves the corrections and
+        the passes done as they were. Its time is not a step's (`seconds` counts steps only)."""
+        report = align_training_poses(self.avatar, self.canonical_grid, self.pose_refiner, self.data, self.config,
+                                      seed=self.config.seed * 7 + len(self.pose_align_reports))
+        report = {"step": self.step, **report}
+        self.pose_align_reports.append(report)
+        return report
 
     def _apply_schedule(self) -> None:
         factor = self.learning_rate_factor(self.step)
@@ -430,6 +453,7 @@ class Trainer:
             "pose_refiner": None if self.pose_refiner is None else self.pose_refiner.state_dict(),
             "pose_optimizer": None if self.pose_optimizer is None else self.pose_optimizer.state_dict(),
             "error_map": None if self.error_map is None else self.error_map.state_dict(),
+            "pose_align_reports": self.pose_align_reports,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -451,6 +475,7 @@ class Trainer:
         if self.pose_refiner is not None:
             self.pose_refiner.load_state_dict(state["pose_refiner"])
             self.pose_optimizer.load_state_dict(state["pose_optimizer"])
+            self.pose_align_reports = [dict(report) for report in state.get("pose_align_reports", [])]
         if self.error_map is not None:
             self.error_map.load_state_dict(state["error_map"])
         self._prepared.clear()
