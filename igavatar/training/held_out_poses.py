@@ -16,7 +16,8 @@ image metrics only (`../shared/design/EVAL.md`: off by default, recorded when on
 
 The refined pose is kept only when it explains a fixed set of the frame's pixels better than the
 estimate did (a loss measured before and after on the same rays), so a refinement that wanders
-cannot lower the score.
+cannot lower the score. The fit itself, optimise_frame_pose, also serves training's whole-frame
+pose passes (igavatar.training.pose_align), on the training run's own corrections.
 """
 
 from __future__ import annotations
