@@ -162,8 +162,8 @@ class TrainConfig:
     refine_poses: bool = False
     """Optimise per-frame corrections of the training frames' joint rotations and root translation
     with the avatar (igavatar.training.pose_refine), with whole-frame pose passes (pose_align_*).
-    Off in every preset: with 5 degrees of noise a joint the passes halve CD-L1 (81 -> 42 mm, exact
-    poses 3.7) in a run 2.5x as long (tests/benchmarks/results/pose-noise.md)."""
+    Off in every preset: with 5 degrees of noise a joint it halves CD-L1 (81 -> 42 mm, 67 without
+    the passes; exact poses 3.7) in a run 2.5x as long (tests/benchmarks/results/pose-noise.md)."""
     pose_lr: float = 0.002
     """Learning rate of the pose corrections (radians, meters) when they start, falling linearly to 0
     at the end of training; each frame's are stepped only on the steps that draw it (SparseAdam),
