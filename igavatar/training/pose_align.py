@@ -50,7 +50,9 @@ def frame_of(data: TrainingData, index: int) -> HeldOutFrame:
 
 def align_training_poses(avatar: Avatar, canonical_grid: OccupancyGrid, refiner: PoseRefiner, data: TrainingData,
                          config: TrainConfig, seed: int) -> dict:
-    """One pass over the refiner's frames (see the module docstring); returns its summary for the log.
+    """One pass over the refiner's frames (see the module docstring); returns its summary for the
+    model's manifest: frames fitted and kept, the fixed pixel sets' mean loss before and after (the
+    better of the two per frame), the mean corrections after the pass, and its seconds.
 
     Args:
         avatar, canonical_grid: the avatar as trained so far (its weights are not stepped).
@@ -79,7 +81,7 @@ def align_training_poses(avatar: Avatar, canonical_grid: OccupancyGrid, refiner:
     after = [min(fit.loss_before, fit.loss_after) for fit in fits if np.isfinite(fit.loss_before)]
     magnitudes = refiner.correction_magnitudes()
     return {"frames": len(fits), "kept": len(kept),
-            "loss_before": float(np.mean(before)) if before else float("nan"),
-            "loss_after": float(np.mean(after)) if after else float("nan"),
+            "loss_before": float(np.mean(before)) if before else None,  # None: no frame had a mask pixel
+            "loss_after": float(np.mean(after)) if after else None,
             "pose_rot_deg": magnitudes["pose_rot_deg"], "pose_root_mm": magnitudes["pose_root_mm"],
             "seconds": time.perf_counter() - started}
