@@ -2,7 +2,7 @@
 with the avatar frozen, a few times in a run.
 
     report = align_training_poses(avatar, canonical_grid, refiner, data, config, seed)
-    report   # {"frames": T, "kept": k, "loss_before": ..., "loss_after": ..., "rotation_deg": ..., ...}
+    report   # {"frames": T, "kept": k, "loss_before": ..., "loss_after": ..., "pose_rot_deg": ..., "pose_root_mm": ..., "seconds": ...}
 
 Training's own pose step (igavatar.training.pose_refine, stepped in Trainer.train_step) sees a
 frame on about steps / frames of the steps, through a few patches: every visit moves each
