@@ -49,11 +49,11 @@ from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicaliz
 from igavatar.capture.subject_skeleton import skeleton_subject
 from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
-from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_SHARE
+from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_SHARE, SPILL_SHARE
 from igavatar.capture.shape_prior import (
     BOX_MARGIN_M, GRID_MARGIN_M, HULL_CELL_M, HULL_PRIOR_VERSION, LOOSE_RULE_VERSION, MIN_HULL_VIEWS, SHAPE_PRIORS,
     TEMPLATE_WEIGHT_SMOOTHING, TEMPLATE_WEIGHT_SPREAD, ShapePrior, WeightBlur, body_prior, hull_prior, hull_views,
-    loose_clothing_share, segmentation_body,
+    posed_template_fit, segmentation_body,
 )
 from igavatar.errors import InputError
 from igavatar.geometry.projection import project_points
@@ -160,7 +160,8 @@ def _dataset_config(options: PreprocessOptions, capture: CaptureV1, input_format
         )
     if has_template and options.shape_prior == "auto":
         # The masks decide between the template and the hull: a change to the rule redoes the dataset.
-        config["loose_clothing"] = {"version": LOOSE_RULE_VERSION, "distance_m": LOOSE_DISTANCE_M, "share": LOOSE_SHARE}
+        config["loose_clothing"] = {"version": LOOSE_RULE_VERSION, "distance_m": LOOSE_DISTANCE_M, "share": LOOSE_SHARE,
+                                    "spill": SPILL_SHARE}
     if not has_template or options.shape_prior != "template":
         # The prior is computed here, not read: a change to how it is made must redo the dataset.
         config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
@@ -315,11 +316,11 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
     with atomic_directory(out, kind="dataset", inputs=output_inputs) as tmp:
         with clock("frames_s"):
             hull_masks = _write_frames(tmp, capture, subject, canonical, K, size_hw, voting, progress)
-        loose = None
+        fit = None
         if voting and canonical.template_vertices is not None and options.shape_prior == "auto":
-            loose = loose_clothing_share(subject, canonical, voting, hull_masks, K, capture.w2c)
-            if loose < LOOSE_SHARE:
-                voting = []  # tight clothes: the naked template is the better prior
+            fit = posed_template_fit(subject, canonical, voting, hull_masks, K, capture.w2c)
+            if not fit.hull_is_better:
+                voting = []  # tight clothes, or poses too far off for a hull: the naked template is the better prior
         with clock("skinning_grid_s"):
             prior = hull_prior(subject, canonical, voting, hull_masks, K, capture.w2c, options.grid_resolution,
                                options.weight_blur) if voting else None
@@ -327,8 +328,9 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
                 prior = body_prior(subject, canonical, options.grid_resolution, options.weight_blur)
         _write_arrays(tmp, capture, subject, canonical, prior, K)
         data = _dataset_data(capture, input_format, subject, canonical, prior, size_hw, scale_xy[0], options)
-        if loose is not None:
-            data["loose_clothing"] = {"share": round(loose, 5), "threshold": LOOSE_SHARE, "distance_m": LOOSE_DISTANCE_M}
+        if fit is not None:
+            data["loose_clothing"] = {"share": round(fit.loose, 5), "threshold": LOOSE_SHARE, "distance_m": LOOSE_DISTANCE_M,
+                                      "spill": round(fit.spill, 5), "spill_threshold": SPILL_SHARE}
         build_manifest("dataset", tmp, stage="preprocess", config=config, inputs=inputs, data=data, seed=None,
                        device="cpu", timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes()})
     return {

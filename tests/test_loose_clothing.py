@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from igavatar.artifacts.manifest import read_artifact
-from igavatar.capture.loose_clothing import LOOSE_SHARE, loose_share, outside_share, template_silhouette
+from igavatar.capture.loose_clothing import LOOSE_SHARE, SPILL_SHARE, outside_share, template_fit, template_silhouette
 from igavatar_cli.main import app
 from stages.preprocess import PreprocessOptions, run_preprocess
 from stages.synth import SynthOptions, run_synth
@@ -44,16 +44,33 @@ def test_share_counts_only_pixels_beyond_the_distance():
     assert outside_share(np.zeros_like(skirt), silhouette, 1.0) == 0.0
 
 
-def test_loose_share_converts_meters_at_the_roots_depth():
+def test_template_fit_converts_meters_at_the_roots_depth():
     vertices, faces = _box(0.4)
     silhouette = template_silhouette(vertices, faces, K, W2C, (100, 100))
     wide = np.zeros_like(silhouette)
     wide[20:80, 20:80] = True  # reaches ~19 px = 0.38 m (at 2 m, 50 px/m) outside the box
     body = [(vertices, faces, np.zeros(3))]
-    tight = loose_share([silhouette], body, K[None], W2C[None], distance_m=0.04)
-    loose = loose_share([wide], body, K[None], W2C[None], distance_m=0.04)
-    far = loose_share([wide], body, K[None], W2C[None], distance_m=0.6)  # 30 px: beyond its corners (27 px)
-    assert tight == 0.0 and loose > 0.5 and far == 0.0
+    tight = template_fit([silhouette], body, K[None], W2C[None], distance_m=0.04)
+    loose = template_fit([wide], body, K[None], W2C[None], distance_m=0.04)
+    far = template_fit([wide], body, K[None], W2C[None], distance_m=0.6)  # 30 px: beyond its corners (27 px)
+    assert tight.loose == 0.0 and loose.loose > 0.5 and far.loose == 0.0
+    # The template stays inside all three masks: no spill, and only the wide mask's looseness asks for the hull.
+    assert tight.spill == loose.spill == far.spill == 0.0
+    assert loose.hull_is_better and not tight.hull_is_better
+
+
+def test_a_template_posed_off_the_mask_is_not_loose_clothing():
+    """A limb posed where the person is not leaves mask pixels far from the template, as a skirt
+    does, but the template then lies on background too: the poses are off, and the hull (which
+    carves what any view's mask leaves out) would take the limb away."""
+    vertices, faces = _box(0.4)
+    silhouette = template_silhouette(vertices, faces, K, W2C, (100, 100))
+    shifted = np.roll(silhouette, 8, axis=1)  # the person 8 px (0.16 m) to the side of the posed template
+    body = [(vertices, faces, np.zeros(3))]
+    fit = template_fit([shifted], body, K[None], W2C[None], distance_m=0.04)  # 2 px
+    # By construction both sides leave a strip of 8 - 2 = 6 of the box's ~22 columns beyond the distance.
+    assert fit.loose == pytest.approx(fit.spill, abs=0.02) and fit.spill > 0.2
+    assert fit.loose >= LOOSE_SHARE and fit.spill >= SPILL_SHARE and not fit.hull_is_better
 
 
 @pytest.mark.parametrize("garment, expected", [("dress", "visual_hull"), ("shirt-trousers", "template")])
@@ -63,8 +80,8 @@ def test_auto_shape_prior_follows_the_masks(tmp_path, garment, expected):
     run_preprocess(PreprocessOptions(capture=tmp_path / "capture", out=tmp_path / "dataset", max_size=96))
     data = read_artifact(tmp_path / "dataset", expected="dataset")["data"]
     assert data["shape_prior"] == expected
-    share = data["loose_clothing"]["share"]
-    assert (share >= LOOSE_SHARE) == (expected == "visual_hull")
+    share, spill = data["loose_clothing"]["share"], data["loose_clothing"]["spill"]
+    assert (share >= LOOSE_SHARE and spill < SPILL_SHARE) == (expected == "visual_hull")
     assert (tmp_path / "dataset" / "body_template.ply").exists() == (expected == "visual_hull")
     if garment == "dress":
         # --shape-prior template keeps the naked template whatever the masks say.

@@ -1,7 +1,7 @@
 """Does the subject wear something the naked body model cannot grow into? Masks against the posed template.
 
-    share = loose_share(masks, bodies, K, w2c, distance_m=LOOSE_DISTANCE_M)   # mean over the views
-    use_hull = share >= LOOSE_SHARE
+    fit = template_fit(masks, bodies, K, w2c, distance_m=LOOSE_DISTANCE_M)   # means over the views
+    use_hull = fit.loose >= LOOSE_SHARE and fit.spill < SPILL_SHARE
 
 A naked template is a good shape prior for tight clothes and a bad one for a dress: training grows
 the surface from the prior, and a skirt between two template legs comes out as two trouser legs.
@@ -10,9 +10,19 @@ centimeters outside the posed template's silhouette. On the three synthetic subj
 60 training views), the share at 2 / 3 / 4 / 5 cm: tight shirt and trousers on a heavy body
 0.057 / 0.012 / 0.0013 / 0; a tight striped shirt 0.023 / 0.003 / 0.0004 / 0; a flared dress
 0.055 / 0.037 / 0.026 / 0.012. Clothes sit 2-3 cm off the body; a skirt much farther.
+
+Poses that are off look the same from the mask's side: an arm posed 10 cm away from where the
+person holds it leaves mask pixels far from the template. They differ on the template's side: a
+misplaced limb also lies on background, where loose clothes only ever cover more (the `spill`).
+The visual hull is then the wrong prior too: it is what every view's mask keeps, and a limb that
+each frame puts somewhere else is carved away (a 5-degree pose noise left an armless blob,
+tests/benchmarks/results/pose-noise.md). So the hull replaces the template only where the template
+stays inside the masks.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -24,6 +34,27 @@ from igavatar.geometry.projection import project_points
 LOOSE_DISTANCE_M = 0.04
 #: The mean share of such pixels from which the masks' visual hull is the better shape prior.
 LOOSE_SHARE = 0.01
+#: The mean share of the posed template's pixels LOOSE_DISTANCE_M outside the mask from which the
+#: poses are taken to be off (not the clothes loose), and the template is kept.
+SPILL_SHARE = 0.01
+
+
+@dataclass(frozen=True)
+class TemplateFit:
+    """How the posed template and the masks disagree, as means over the views.
+
+    Attributes:
+        loose: share of the masks' pixels farther than the distance outside the template's silhouette.
+        spill: share of the template silhouette's pixels farther than the distance outside the mask.
+    """
+
+    loose: float
+    spill: float
+
+    @property
+    def hull_is_better(self) -> bool:
+        """Loose clothes (the masks reach past the template) on poses that hold (the template stays inside)."""
+        return self.loose >= LOOSE_SHARE and self.spill < SPILL_SHARE
 
 
 def template_silhouette(vertices_world: np.ndarray, faces: np.ndarray, K: np.ndarray, w2c: np.ndarray,
@@ -49,14 +80,14 @@ def outside_share(mask: np.ndarray, silhouette: np.ndarray, distance_px: float) 
     return float((mask & (distance > distance_px)).sum() / mask.sum())
 
 
-def loose_share(
+def template_fit(
     masks: list[np.ndarray],
     bodies: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     K: np.ndarray,
     w2c: np.ndarray,
     distance_m: float = LOOSE_DISTANCE_M,
-) -> float:
-    """Mean over the views of the share of subject pixels `distance_m` outside the posed template.
+) -> TemplateFit:
+    """Means over the views of the masks' pixels `distance_m` outside the posed template, and back.
 
     Args:
         masks: V (H, W) bool subject masks at the dataset's size.
@@ -64,13 +95,15 @@ def loose_share(
             the root's depth converts meters to pixels.
         K: (V, 3, 3) intrinsics at the masks' size; w2c: (V, 4, 4).
     Returns:
-        The mean share in [0, 1]; 0 when there are no views.
+        TemplateFit with both shares in [0, 1]; 0 when there are no views.
     """
-    shares = []
+    loose, spill = [], []
     for mask, (vertices, faces, root), k, pose in zip(masks, bodies, K, w2c):
         _, depth = project_points(k, pose, np.asarray(root, np.float64)[None])
         if not depth[0] > 1e-6:
             continue
         silhouette = template_silhouette(vertices, faces, k, pose, mask.shape)
-        shares.append(outside_share(mask, silhouette, distance_m * float(k[0, 0]) / float(depth[0])))
-    return float(np.mean(shares)) if shares else 0.0
+        distance_px = distance_m * float(k[0, 0]) / float(depth[0])
+        loose.append(outside_share(mask, silhouette, distance_px))
+        spill.append(outside_share(silhouette, mask, distance_px))
+    return TemplateFit(float(np.mean(loose)) if loose else 0.0, float(np.mean(spill)) if spill else 0.0)

@@ -20,7 +20,7 @@ from igavatar.body.capsules import capsule_prior
 from igavatar.body.skeleton import linear_blend_skinning
 from igavatar.capture.capture_v1 import CaptureV1
 from igavatar.capture.ghost_limbs import GhostTest, PosedBones
-from igavatar.capture.loose_clothing import loose_share
+from igavatar.capture.loose_clothing import TemplateFit, template_fit
 from igavatar.capture.posed_subject import CanonicalSubject, PosedSubject
 from igavatar.capture.segment import PosedBody
 from igavatar.capture.visual_hull import MaskViews, grid_skin, hull_cells, hull_prior_mesh, search_box, spread_views
@@ -45,8 +45,9 @@ MAX_HULL_VIEWS = 64
 #: no template (else capsules); template = the template always; visual-hull = the hull even over a
 #: tight template (it bounds clothes and hair), with the template's skinning weights.
 SHAPE_PRIORS = ("auto", "template", "visual-hull")
-#: Bump when auto's choice between the template and the hull changes.
-LOOSE_RULE_VERSION = 1
+#: Bump when auto's choice between the template and the hull changes (2: not when the template
+#: spills past the masks, igavatar.capture.loose_clothing.SPILL_SHARE).
+LOOSE_RULE_VERSION = 2
 #: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept;
 #: 3: space that skinning lands inside another limb is not kept; 4: body_template.ply beside it;
 #: 5: crushed space that kept cells wall in, the inside of a skirt, is kept).
@@ -197,7 +198,7 @@ def hull_views(capture: CaptureV1, canonical: CanonicalSubject, shape_prior: str
 
     A bare skeleton's capsules are a sliver around a lone root and a naked stick figure elsewhere:
     its prior is the masks' visual hull, made once the masks are read. With a template and
-    `auto`, the same views' masks decide whether the hull replaces it (`loose_clothing_share`).
+    `auto`, the same views' masks decide whether the hull replaces it (`posed_template_fit`).
     `shape_prior` is --shape-prior (SHAPE_PRIORS).
     """
     train_names = set(capture.splits["train"])
@@ -214,13 +215,11 @@ def hull_views(capture: CaptureV1, canonical: CanonicalSubject, shape_prior: str
     return []
 
 
-def loose_clothing_share(subject: PosedSubject, canonical: CanonicalSubject, views: list[int], masks: dict[int, np.ndarray],
-                    K: np.ndarray, w2c: np.ndarray) -> float:
-    """Mean share of the views' subject pixels LOOSE_DISTANCE_M outside the posed template's silhouette."""
+def posed_template_fit(subject: PosedSubject, canonical: CanonicalSubject, views: list[int], masks: dict[int, np.ndarray],
+                       K: np.ndarray, w2c: np.ndarray) -> TemplateFit:
+    """The views' masks against the posed template (igavatar.capture.loose_clothing.template_fit)."""
     bodies = []
     for i in views:
         body = segmentation_body(subject, canonical, i)
         bodies.append((body.vertices, body.faces, canonical.posed_joints[i][0].double().numpy()))
-    return loose_share([masks[i] for i in views], bodies, K[views], w2c[views])
-
-
+    return template_fit([masks[i] for i in views], bodies, K[views], w2c[views])
