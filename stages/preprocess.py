@@ -49,7 +49,7 @@ from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicaliz
 from igavatar.capture.subject_skeleton import skeleton_subject
 from igavatar.capture.subject_smpl import smpl_model_for
 from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
-from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_SHARE, SPILL_SHARE
+from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_OVER_SPILL, LOOSE_SHARE
 from igavatar.capture.shape_prior import (
     BOX_MARGIN_M, GRID_MARGIN_M, HULL_CELL_M, HULL_PRIOR_VERSION, LOOSE_RULE_VERSION, MIN_HULL_VIEWS, SHAPE_PRIORS,
     TEMPLATE_WEIGHT_SMOOTHING, TEMPLATE_WEIGHT_SPREAD, ShapePrior, WeightBlur, body_prior, hull_prior, hull_views,
@@ -161,7 +161,7 @@ def _dataset_config(options: PreprocessOptions, capture: CaptureV1, input_format
     if has_template and options.shape_prior == "auto":
         # The masks decide between the template and the hull: a change to the rule redoes the dataset.
         config["loose_clothing"] = {"version": LOOSE_RULE_VERSION, "distance_m": LOOSE_DISTANCE_M, "share": LOOSE_SHARE,
-                                    "spill": SPILL_SHARE}
+                                    "loose_over_spill": LOOSE_OVER_SPILL}
     if not has_template or options.shape_prior != "template":
         # The prior is computed here, not read: a change to how it is made must redo the dataset.
         config["hull_prior"] = {"version": HULL_PRIOR_VERSION, "cell_m": HULL_CELL_M, "min_views": MIN_HULL_VIEWS}
@@ -330,7 +330,7 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
         data = _dataset_data(capture, input_format, subject, canonical, prior, size_hw, scale_xy[0], options)
         if fit is not None:
             data["loose_clothing"] = {"share": round(fit.loose, 5), "threshold": LOOSE_SHARE, "distance_m": LOOSE_DISTANCE_M,
-                                      "spill": round(fit.spill, 5), "spill_threshold": SPILL_SHARE}
+                                      "spill": round(fit.spill, 5), "loose_over_spill": LOOSE_OVER_SPILL}
         build_manifest("dataset", tmp, stage="preprocess", config=config, inputs=inputs, data=data, seed=None,
                        device="cpu", timings=clock.finish(), peak_memory={"ram_bytes": peak_ram_bytes()})
     return {

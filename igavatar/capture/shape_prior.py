@@ -46,7 +46,7 @@ MAX_HULL_VIEWS = 64
 #: tight template (it bounds clothes and hair), with the template's skinning weights.
 SHAPE_PRIORS = ("auto", "template", "visual-hull")
 #: Bump when auto's choice between the template and the hull changes (2: not when the template
-#: spills past the masks, igavatar.capture.loose_clothing.SPILL_SHARE).
+#: spills past the masks nearly as far as they reach past it, igavatar.capture.loose_clothing.LOOSE_OVER_SPILL).
 LOOSE_RULE_VERSION = 2
 #: Bump when the bare-skeleton prior changes (2: space that skinning crushes is not kept;
 #: 3: space that skinning lands inside another limb is not kept; 4: body_template.ply beside it;
