@@ -80,6 +80,11 @@ def _write_refined_poses(path: Path, trainer: Trainer) -> None:
              translation_corrections=refiner.translation.detach().cpu().numpy())
 
 
+def _rounded(report: dict) -> dict:
+    """A pose pass's summary for the manifest: floats to 5 decimals."""
+    return {k: round(v, 5) if isinstance(v, float) else v for k, v in report.items()}
+
+
 def config_to_json(config: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
@@ -93,6 +98,15 @@ def _body_template(dataset: DatasetArtifact) -> tuple[np.ndarray, np.ndarray] | 
 
     mesh = trimesh.load(path, process=False)
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def _shape_prior_vertices(config: TrainConfig, dataset: DatasetArtifact) -> np.ndarray | None:
+    """The shape prior's (V, 3) canonical vertices when the poses will be fitted to the masks, else None."""
+    if not (config.refine_poses and config.pose_silhouette_steps > 0):
+        return None
+    import trimesh
+
+    return np.asarray(trimesh.load(dataset.path / PRIOR_FILE, process=False).vertices)
 
 
 def _shape_initialize(
@@ -168,6 +182,10 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_ch
             advance(trainer.step)
             while trainer.step < trainer.total_steps:
                 raise_if_interrupted()  # one a library swallowed (trimesh catches BaseException)
+                if trainer.pose_silhouette_due():
+                    # Not deferred either: an interrupt undoes the whole fit (pose_silhouette).
+                    progress.status("fitting the training poses to the masks")
+                    trainer.fit_poses_to_masks()
                 if trainer.pose_align_due():
                     # Minutes long, so not deferred: an interrupt undoes the whole pass (pose_align).
                     progress.status(f"step {trainer.step}: fitting each training frame's pose to its image")
@@ -225,8 +243,9 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
         **({"body_inside": trainer.body_inside_check} if trainer.body_inside_check is not None else {}),
         **({"pose_refinement": {"frames": len(trainer.pose_refiner.frames), "file": REFINED_POSES_FILE,
                                 **{k: round(v, 4) for k, v in trainer.pose_refiner.correction_magnitudes().items()},
-                                "passes": [{k: round(v, 5) if isinstance(v, float) else v for k, v in report.items()}
-                                           for report in trainer.pose_align_reports]}}
+                                "silhouette": None if trainer.pose_silhouette_report is None else
+                                _rounded(trainer.pose_silhouette_report),
+                                "passes": [_rounded(report) for report in trainer.pose_align_reports]}}
            if trainer.pose_refiner is not None else {}),
     }
 
@@ -281,7 +300,7 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     # The template is read only when the body-inside term will use it.
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
     trainer = Trainer(config, data, avatar, device, body_template=body_template,
-                      pose_refiner=_pose_refiner(config, dataset, data))
+                      pose_refiner=_pose_refiner(config, dataset, data), shape_prior_vertices=_shape_prior_vertices(config, dataset))
     _say_why_body_inside_is_off(trainer.body_inside_check, progress)
     if resumed is not None:
         trainer.load_state_dict(resumed["trainer"])

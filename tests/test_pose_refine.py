@@ -58,6 +58,26 @@ def test_a_correction_rotates_the_joint_as_forward_kinematics_does():
                                           forward_kinematics(canonical, rest, parents)[None])[0, :2], atol=1e-5)
 
 
+def test_all_frames_at_once_match_frame_by_frame_with_their_gradients():
+    parents, rest, canonical, _, _, transforms = _skeleton_frames(n_frames=4, seed=9)
+    refiner = PoseRefiner(transforms.float(), parents, rest, canonical.numpy(), torch.tensor([0, 1, 3]),
+                          joints=np.array([0, 2, 4]))
+    generator = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        refiner.rotation.copy_(0.2 * torch.randn(refiner.rotation.shape, generator=generator))
+        refiner.translation.copy_(0.05 * torch.randn(refiner.translation.shape, generator=generator))
+    weights = torch.randn(3, 6, 4, 4, generator=generator, dtype=torch.float64)
+    batched = refiner.corrected_transforms()
+    (batched * weights).sum().backward()
+    grads = refiner.rotation.grad.clone(), refiner.translation.grad.clone()
+    refiner.zero_grad()
+    single = torch.stack([refiner.bone_transforms(index).double() for index in (0, 1, 3)])
+    (single * weights).sum().backward()
+    assert torch.allclose(batched.float().double(), single, atol=1e-6)
+    assert torch.allclose(grads[0], refiner.rotation.grad, atol=1e-4)
+    assert torch.allclose(grads[1], refiner.translation.grad, atol=1e-4)
+
+
 def test_only_the_chosen_joints_are_corrected():
     parents, rest, canonical, _, _, transforms = _skeleton_frames(n_frames=1, seed=5)
     refiner = PoseRefiner(transforms.float(), parents, rest, canonical.numpy(), torch.tensor([0]), joints=np.array([0, 2]))

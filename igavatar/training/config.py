@@ -184,6 +184,21 @@ class TrainConfig:
     """Steps of one frame's pose fit in such a pass (each costs about a training step)."""
     pose_align_lr: float = 0.004
     """Adam's rate of that fit (radians, meters): 16 steps can move a joint by up to about 3.7 degrees."""
+    pose_silhouette_steps: int = 200
+    """With refine_poses: Adam steps fitting every training frame's pose corrections to its mask
+    before the first training step, the shape prior posed by them (igavatar.training.pose_silhouette);
+    0 for none."""
+    pose_silhouette_lr: float = 0.005
+    """Adam's rate of that fit (radians, meters)."""
+    pose_silhouette_coverage: float = 1.0
+    """Weight of its outline term (the mask's outline near the posed prior) against the inside term."""
+    pose_silhouette_prior_weight: float = 1.0
+    """Weight of the squared corrections in that fit (radians^2, and (meters /
+    pose_silhouette_translation_scale_m)^2), against the silhouette term's mean px."""
+    pose_silhouette_translation_scale_m: float = 0.1
+    """A root correction of this many meters costs as much as a radian in that fit: training's
+    2 cm (pose_translation_scale_m) held the root where it was, since a silhouette moved by a few
+    centimetres gains less than a pixel of the term."""
     shape_init_steps: int = 1000
     """Steps fitting the SDF to the template's SDF before photometric training (0 = sphere)."""
     shape_init_points: int = 16384

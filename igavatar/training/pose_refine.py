@@ -83,6 +83,24 @@ class PoseRefiner(torch.nn.Module):
             return torch.stack([self._corrected(self.local[s], self.rotation[s], self.translation[s])
                                 for s in range(len(self.frames))])
 
+    def corrected_transforms(self) -> torch.Tensor:
+        """(T, J, 4, 4) float64 corrected canonical -> posed transforms of every refined frame, in
+        `frames` order, differentiable in the corrections (every frame at once: one product per
+        level of the skeleton instead of one per joint and frame, as `bone_transforms` does)."""
+        frames, joints = self.local.shape[:2]
+        correction = torch.eye(4, dtype=self.local.dtype, device=self.local.device).repeat(frames, joints, 1, 1)
+        correction[:, self.joints, :3, :3] = axis_angle_to_matrix(self.rotation.to(self.local.dtype))
+        local = self.local @ correction
+        shift = torch.zeros_like(local[:, 0])
+        shift[:, :3, 3] = self.translation.to(local.dtype)
+        global_transforms = local.clone()
+        global_transforms[:, 0] = local[:, 0] + shift
+        parents = torch.as_tensor(self.parents, device=local.device)
+        for level in self._levels:
+            level = torch.as_tensor(level, device=local.device)
+            global_transforms[:, level] = global_transforms[:, parents[level]] @ local[:, level]
+        return global_transforms @ self.canonical_inverse
+
     def _corrected(self, local: torch.Tensor, rotation: torch.Tensor, translation: torch.Tensor) -> torch.Tensor:
         correction = torch.eye(4, dtype=local.dtype, device=local.device).repeat(len(local), 1, 1)
         correction[self.joints, :3, :3] = axis_angle_to_matrix(rotation.to(local.dtype))

@@ -1,0 +1,122 @@
+"""Training poses fitted to the masks before training: the shape prior, posed into each training
+frame by its corrected pose, must lie inside the frame's mask and reach its outline.
+
+    report = fit_poses_to_masks(refiner, data, deformer, prior_vertices, config)
+    report   # {"frames": T, "kept": k, "outside_px_before": ..., "outside_px_after": ..., "pose_rot_deg": ..., ...}
+
+Whole-frame passes against the avatar's renders (igavatar.training.pose_align) need an avatar to
+compare with, and one trained on wrong poses is their blurred average: 5 degrees of noise a joint
+left an armless blob that no later pass could pose (tests/benchmarks/results/pose-noise.md). The
+masks need no avatar. Before the first step, every training frame's corrections are fitted at once
+to the silhouette term of the video fit (igavatar.body.silhouette_fit): points of the dataset's
+shape prior (the naked template for tight clothes, the masks' visual hull for loose ones), skinned
+by the deformer's weights, must fall inside the mask, and the mask's outline must lie near the posed
+points (up to a margin for clothes). A prior keeps the corrections near the estimate; a silhouette
+says nothing of a twist about a limb, and those corrections get no gradient and stay at zero.
+
+A frame keeps its fit only if its silhouette term went down. The fit is all or nothing: an
+interrupt puts every correction back.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from igavatar.body.image_maps import huber_px
+from igavatar.body.silhouette_fit import HUBER_PX, SilhouetteTarget, spread_subset
+from igavatar.model.deformer import FastSnarfDeformer
+from igavatar.skinning.grid import sample_skinning_weights
+from igavatar.training.config import TrainConfig
+from igavatar.training.data import TrainingData
+from igavatar.training.pose_refine import PoseRefiner
+
+#: Points of the prior the silhouette checks in every frame (as the video fit).
+PRIOR_POINTS = 600
+
+
+def silhouette_target(refiner: PoseRefiner, data: TrainingData, deformer: FastSnarfDeformer,
+                      prior_vertices: np.ndarray) -> SilhouetteTarget:
+    """The refiner's frames' masks and PRIOR_POINTS points of the canonical prior (V, 3), with the
+    deformer's skinning weights there. Its `rest` space is canonical space (rest_joints 0), so its
+    `posed_points` takes canonical -> posed bone transforms (T, J, 4, 4)."""
+    frames = refiner.frames.cpu()
+    chosen = spread_subset(np.asarray(prior_vertices, dtype=np.float64), PRIOR_POINTS)
+    points = torch.as_tensor(np.asarray(prior_vertices, dtype=np.float64)[chosen])
+    grid = deformer.weights_grid.detach().cpu()
+    weights = sample_skinning_weights(grid, deformer.box_min.cpu(), deformer.box_max.cpu(), points.to(grid.dtype))
+    return SilhouetteTarget.of(data.masks[frames].numpy(), points.numpy(), weights.double().numpy(),
+                               np.zeros((deformer.num_joints, 3)))
+
+
+def frame_losses(target: SilhouetteTarget, transforms: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                 coverage_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per frame (T,): the robust silhouette term, and the mean px of the points outside the mask.
+
+    Args:
+        transforms: (T, J, 4, 4) canonical -> posed world; K: (T, 3, 3); w2c: (T, 4, 4) float64.
+    """
+    x_world = target.posed_points(transforms)  # (T, S, 3)
+    x_camera = torch.einsum("tij,tsj->tsi", w2c[:, :3, :3], x_world) + w2c[:, None, :3, 3]
+    projected = torch.einsum("tij,tsj->tsi", K, x_camera)
+    uv = projected[..., :2] / x_camera[..., 2:].clamp_min(1e-3)
+    outside, uncovered = target.distances_at(uv, coverage_weight > 0)
+    loss = huber_px(outside, HUBER_PX).mean(1)
+    if uncovered is not None:
+        loss = loss + coverage_weight * huber_px(uncovered, HUBER_PX).mean(1)
+    return loss, outside.mean(1)
+
+
+def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastSnarfDeformer,
+                       prior_vertices: np.ndarray, config: TrainConfig) -> dict:
+    """Fit every refined frame's corrections to its mask (module docstring), in place; returns the
+    summary for the model's manifest.
+
+    Args:
+        refiner: the run's pose corrections (changed in place: only frames whose term fell move).
+        data: the training frames (masks, cameras); deformer: its skinning weights pose the prior.
+        prior_vertices: (V, 3) canonical vertices of the dataset's shape prior.
+        config: pose_silhouette_steps, pose_silhouette_lr, pose_silhouette_coverage,
+            pose_silhouette_prior_weight, pose_silhouette_translation_scale_m.
+    """
+    started = time.perf_counter()
+    target = silhouette_target(refiner, data, deformer, prior_vertices)
+    frames = refiner.frames.cpu()
+    K, w2c = data.K[frames].double(), data.w2c[frames].double()
+    device = refiner.rotation.device
+    saved = refiner.rotation.detach().clone(), refiner.translation.detach().clone()
+    optimizer = torch.optim.Adam([refiner.rotation, refiner.translation], lr=config.pose_silhouette_lr)
+    try:
+        with torch.no_grad():
+            before, outside_before = frame_losses(target, refiner.corrected_transforms().cpu(), K, w2c,
+                                                  config.pose_silhouette_coverage)
+        for _ in range(config.pose_silhouette_steps):
+            optimizer.zero_grad(set_to_none=True)
+            loss, _ = frame_losses(target, refiner.corrected_transforms().cpu(), K, w2c, config.pose_silhouette_coverage)
+            prior = (refiner.rotation.square().sum((1, 2))
+                     + (refiner.translation / config.pose_silhouette_translation_scale_m).square().sum(1)).cpu()
+            total = (target.frame_weight * (loss + config.pose_silhouette_prior_weight * prior)).sum()
+            (total / target.frame_weight.sum().clamp_min(1.0)).backward()
+            optimizer.step()
+        with torch.no_grad():
+            after, outside_after = frame_losses(target, refiner.corrected_transforms().cpu(), K, w2c,
+                                                config.pose_silhouette_coverage)
+            worse = (after >= before).to(device)
+            refiner.rotation[worse] = saved[0][worse]
+            refiner.translation[worse] = saved[1][worse]
+    except BaseException:
+        with torch.no_grad():
+            refiner.rotation.copy_(saved[0])
+            refiner.translation.copy_(saved[1])
+        raise
+    worse = worse.cpu()
+    masked = target.frame_weight > 0
+    outside_final = torch.where(worse, outside_before, outside_after)
+    magnitudes = refiner.correction_magnitudes()
+    return {"frames": len(frames), "kept": int((~worse & masked).sum()),
+            "outside_px_before": float(outside_before[masked].mean()) if masked.any() else None,
+            "outside_px_after": float(outside_final[masked].mean()) if masked.any() else None,
+            "pose_rot_deg": magnitudes["pose_rot_deg"], "pose_root_mm": magnitudes["pose_root_mm"],
+            "seconds": time.perf_counter() - started}
