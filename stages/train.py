@@ -43,6 +43,7 @@ from igavatar.training.checkpoint import save_state
 from igavatar.training.config import TrainConfig
 from igavatar.training.run_state import TrainingLog, cached_shape_init, checkpoint_of_this_run, fit_shape, shape_init_key
 from igavatar.training.pose_refine import REFINED_POSES_FILE, PoseRefiner
+from igavatar.training.pose_silhouette import SilhouetteFit, fit_poses_to_masks
 from igavatar.training.trainer import Trainer
 from igavatar.viewer.server import check_port_free
 from stages.kernels import build_kernels, resolve_device
@@ -100,13 +101,25 @@ def _body_template(dataset: DatasetArtifact) -> tuple[np.ndarray, np.ndarray] | 
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
-def _shape_prior_vertices(config: TrainConfig, dataset: DatasetArtifact) -> np.ndarray | None:
-    """The shape prior's (V, 3) canonical vertices when the poses will be fitted to the masks, else None."""
-    if not (config.refine_poses and config.pose_silhouette_steps > 0):
+def _fit_poses_to_masks(config: TrainConfig, dataset: DatasetArtifact, data, avatar: Avatar, refiner: PoseRefiner | None,
+                        resumed: dict | None, progress: ProgressSink) -> SilhouetteFit | None:
+    """The training poses' fit to the masks (igavatar.training.pose_silhouette), before the trainer
+    votes its priors on them: run now, or for a resumed run the one its checkpoint recorded. An
+    interrupt undoes the whole fit, and no checkpoint exists yet."""
+    if refiner is None or config.pose_silhouette_steps == 0:
         return None
+    if resumed is not None:
+        state = resumed["trainer"].get("pose_silhouette")
+        if state is None:
+            return None
+        fit = SilhouetteFit.from_state(state)
+        fit.apply(refiner)
+        return fit
     import trimesh
 
-    return np.asarray(trimesh.load(dataset.path / PRIOR_FILE, process=False).vertices)
+    progress.status("fitting the training poses to the masks")
+    prior_vertices = np.asarray(trimesh.load(dataset.path / PRIOR_FILE, process=False).vertices)
+    return fit_poses_to_masks(refiner, data, avatar.deformer, prior_vertices, config)
 
 
 def _shape_initialize(
@@ -182,10 +195,6 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_ch
             advance(trainer.step)
             while trainer.step < trainer.total_steps:
                 raise_if_interrupted()  # one a library swallowed (trimesh catches BaseException)
-                if trainer.pose_silhouette_due():
-                    # Not deferred either: an interrupt undoes the whole fit (pose_silhouette).
-                    progress.status("fitting the training poses to the masks")
-                    trainer.fit_poses_to_masks()
                 if trainer.pose_align_due():
                     # Minutes long, so not deferred: an interrupt undoes the whole pass (pose_align).
                     progress.status(f"step {trainer.step}: fitting each training frame's pose to its image")
@@ -243,8 +252,8 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
         **({"body_inside": trainer.body_inside_check} if trainer.body_inside_check is not None else {}),
         **({"pose_refinement": {"frames": len(trainer.pose_refiner.frames), "file": REFINED_POSES_FILE,
                                 **{k: round(v, 4) for k, v in trainer.pose_refiner.correction_magnitudes().items()},
-                                "silhouette": None if trainer.pose_silhouette_report is None else
-                                _rounded(trainer.pose_silhouette_report),
+                                "silhouette": None if trainer.pose_silhouette is None else
+                                _rounded(trainer.pose_silhouette.report),
                                 "passes": [_rounded(report) for report in trainer.pose_align_reports]}}
            if trainer.pose_refiner is not None else {}),
     }
@@ -299,8 +308,10 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
         save_state(work / "shape_init.npz", shape_state)
     # The template is read only when the body-inside term will use it.
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
-    trainer = Trainer(config, data, avatar, device, body_template=body_template,
-                      pose_refiner=_pose_refiner(config, dataset, data), shape_prior_vertices=_shape_prior_vertices(config, dataset))
+    refiner = _pose_refiner(config, dataset, data)
+    silhouette = _fit_poses_to_masks(config, dataset, data, avatar, refiner, resumed, progress)
+    trainer = Trainer(config, data, avatar, device, body_template=body_template, pose_refiner=refiner,
+                      pose_silhouette=silhouette)
     _say_why_body_inside_is_off(trainer.body_inside_check, progress)
     if resumed is not None:
         trainer.load_state_dict(resumed["trainer"])

@@ -1,6 +1,6 @@
 """The training poses fitted to the masks before training: a known pose error (a root moved
 sideways, an arm turned) is pulled back, an interrupted fit leaves every correction as it was, and
-the trainer fits once, before its first step, with the record kept across a checkpoint."""
+the trainer votes its body-inside prior on the fitted poses and keeps the fit across a checkpoint."""
 
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ from igavatar.training import pose_silhouette
 from igavatar.training.checkpoint import load_state, save_state
 from igavatar.training.config import preset
 from igavatar.training.pose_refine import PoseRefiner
+from igavatar.training.pose_silhouette import SilhouetteFit, corrected_data
 from igavatar.training.trainer import Trainer
+from stages.train import _body_template
 
 
 def _setup(small_run):
@@ -55,24 +57,34 @@ def _arm(dataset) -> int:
     return arms[0]
 
 
-def test_the_fit_pulls_a_known_pose_error_back(small_run):
-    """One frame's root moved 10 cm sideways (3 px at 64 px) and one arm turned 30 degrees: the
-    fit to the masks moves the root back by most of the shift and the arm's joints back toward
-    where the masks show them; frames that were right stay near their poses."""
-    dataset, data, config, avatar, prior = _setup(small_run)
+def _wrong_frames(dataset, data, slots=(0,)):
+    """`data` with these training frames' roots moved 10 cm sideways (3 px at 64 px) and one arm
+    turned 30 degrees in the image plane, and the first one's sideways direction."""
     truth = _refiner(dataset, data)
-    slot = 0
-    index = int(data.train_indices[slot])
-    sideways = torch.as_tensor(np.linalg.inv(data.w2c[index].double().numpy())[:3, 0], dtype=torch.float32)
-    toward = torch.as_tensor(np.linalg.inv(data.w2c[index].double().numpy())[:3, 2], dtype=torch.float32)
-    with torch.no_grad():  # the wrong pose, made by the corrections' own parametrisation
-        truth.translation[slot] = 0.10 * sideways
-        truth.rotation[slot, _arm(dataset)] = np.radians(30.0) * toward  # turned in the image plane
+    directions = []
+    for slot in slots:
+        camera_to_world = np.linalg.inv(data.w2c[int(data.train_indices[slot])].double().numpy())
+        sideways = torch.as_tensor(camera_to_world[:3, 0], dtype=torch.float32)
+        toward = torch.as_tensor(camera_to_world[:3, 2], dtype=torch.float32)
+        with torch.no_grad():  # the wrong pose, made by the corrections' own parametrisation
+            truth.translation[slot] = 0.10 * sideways
+            truth.rotation[slot, _arm(dataset)] = np.radians(30.0) * toward  # turned in the image plane
+        directions.append(sideways)
     wrong = data.bone_transforms.clone()
     wrong[data.train_indices] = truth.corrected_transforms().detach().float()
-    noisy = dataclasses.replace(data, bone_transforms=wrong)
+    return dataclasses.replace(data, bone_transforms=wrong), directions[0]
+
+
+def test_the_fit_pulls_a_known_pose_error_back(small_run):
+    """The first frame posed wrong (_wrong_frames): the fit to the masks moves the root back by
+    most of the shift and the joints back toward where the masks show them; frames that were right
+    stay near their poses."""
+    dataset, data, config, avatar, prior = _setup(small_run)
+    slot = 0
+    noisy, sideways = _wrong_frames(dataset, data)
+    wrong = noisy.bone_transforms
     refiner = _refiner(dataset, noisy)
-    report = pose_silhouette.fit_poses_to_masks(refiner, noisy, avatar.deformer, prior, config)
+    report = pose_silhouette.fit_poses_to_masks(refiner, noisy, avatar.deformer, prior, config).report
     assert report["frames"] == len(data.train_indices) and report["kept"] >= 1
     assert report["outside_px_after"] < report["outside_px_before"]
     moved_back = -float(refiner.translation[slot].detach() @ sideways)
@@ -108,25 +120,25 @@ def test_an_interrupted_fit_changes_nothing(small_run, monkeypatch):
     assert torch.equal(refiner.translation.detach(), before[1])
 
 
-def test_the_trainer_fits_once_before_its_first_step(small_run, tmp_path, monkeypatch):
-    """Due at step 0 only, once; its record survives a checkpoint; 0 steps or no prior: never due."""
+def test_the_trainer_votes_on_the_fitted_poses_and_keeps_the_fit(small_run, tmp_path):
+    """The body-inside prior is voted in the poses the fit made (more of the template confirmed
+    than in the wrong ones), and the fit's corrections and summary survive a checkpoint."""
     dataset, data, config, avatar, prior = _setup(small_run)
-    config = dataclasses.replace(config, steps=20, validate_every=0)
-    monkeypatch.setattr("igavatar.training.trainer.fit_poses_to_masks",
-                        lambda *args, **kwargs: {"frames": 4, "kept": 3, "seconds": 0.5})
-    trainer = Trainer(config, data, avatar, "cpu", pose_refiner=_refiner(dataset, data), shape_prior_vertices=prior)
-    assert trainer.pose_silhouette_due()
-    trainer.fit_poses_to_masks()
-    assert not trainer.pose_silhouette_due() and trainer.pose_silhouette_report["kept"] == 3
-    save_state(tmp_path / "checkpoint.npz", trainer.state_dict())
-    resumed = Trainer(config, data, build_avatar(config, dataset.subject, dataset.pose_dim), "cpu",
-                      pose_refiner=_refiner(dataset, data), shape_prior_vertices=prior)
-    resumed.load_state_dict(load_state(tmp_path / "checkpoint.npz"))
-    assert not resumed.pose_silhouette_due() and int(resumed.pose_silhouette_report["kept"]) == 3
-    later = Trainer(config, data, avatar, "cpu", pose_refiner=_refiner(dataset, data), shape_prior_vertices=prior)
-    later.step = 1
-    assert not later.pose_silhouette_due()
-    for none in (Trainer(dataclasses.replace(config, pose_silhouette_steps=0), data, avatar, "cpu",
-                         pose_refiner=_refiner(dataset, data), shape_prior_vertices=prior),
-                 Trainer(config, data, avatar, "cpu", pose_refiner=_refiner(dataset, data))):
-        assert not none.pose_silhouette_due()
+    config = dataclasses.replace(config, validate_every=0,
+                                 loss_weights=dataclasses.replace(config.loss_weights, body_inside=1.0))
+    noisy, _ = _wrong_frames(dataset, data, slots=(0, 1))  # the vote drops a point seen outside in 2 views
+    template = _body_template(dataset)
+    unfitted = Trainer(config, noisy, avatar, "cpu", body_template=template, pose_refiner=_refiner(dataset, noisy))
+    refiner = _refiner(dataset, noisy)
+    fit = pose_silhouette.fit_poses_to_masks(refiner, noisy, avatar.deformer, prior, config)
+    voted = corrected_data(noisy, refiner)
+    assert torch.allclose(voted.bone_transforms[data.train_indices], refiner.corrected_transforms().float(), atol=1e-6)
+    fitted = Trainer(config, noisy, avatar, "cpu", body_template=template, pose_refiner=refiner, pose_silhouette=fit)
+    assert fitted.body_inside_check["kept"] > unfitted.body_inside_check["kept"]
+    save_state(tmp_path / "checkpoint.npz", fitted.state_dict())
+    restored = SilhouetteFit.from_state(load_state(tmp_path / "checkpoint.npz")["pose_silhouette"])
+    assert restored.report == fit.report
+    assert torch.equal(restored.rotation, fit.rotation) and torch.equal(restored.translation, fit.translation)
+    again = _refiner(dataset, noisy)
+    restored.apply(again)
+    assert torch.equal(again.rotation.detach(), refiner.rotation.detach())

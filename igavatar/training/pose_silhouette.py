@@ -1,8 +1,9 @@
 """Training poses fitted to the masks before training: the shape prior, posed into each training
 frame by its corrected pose, must lie inside the frame's mask and reach its outline.
 
-    report = fit_poses_to_masks(refiner, data, deformer, prior_vertices, config)
-    report   # {"frames": T, "kept": k, "outside_px_before": ..., "outside_px_after": ..., "pose_rot_deg": ..., ...}
+    fit = fit_poses_to_masks(refiner, data, deformer, prior_vertices, config)
+    fit.report   # {"frames": T, "kept": k, "outside_px_before": ..., "outside_px_after": ..., "pose_rot_deg": ..., ...}
+    voting = corrected_data(data, refiner)   # the frames as the fit posed them, for the priors' vote
 
 Whole-frame passes against the avatar's renders (igavatar.training.pose_align) need an avatar to
 compare with, and one trained on wrong poses is their blurred average: 5 degrees of noise a joint
@@ -15,12 +16,15 @@ points (up to a margin for clothes). A prior keeps the corrections near the esti
 says nothing of a twist about a limb, and those corrections get no gradient and stay at zero.
 
 A frame keeps its fit only if its silhouette term went down. The fit is all or nothing: an
-interrupt puts every correction back.
+interrupt puts every correction back. The corrections it found are kept apart from training's later
+ones (SilhouetteFit), so that a resumed run votes its body-inside prior on the same poses.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -35,6 +39,41 @@ from igavatar.training.pose_refine import PoseRefiner
 
 #: Points of the prior the silhouette checks in every frame (as the video fit).
 PRIOR_POINTS = 600
+
+
+@dataclass(frozen=True)
+class SilhouetteFit:
+    """The fit's summary (for the model's manifest) and the corrections it left.
+
+    Attributes:
+        report: frames, kept, outside_px_before / _after, pose_rot_deg, pose_root_mm, seconds.
+        rotation: (T, K, 3) and translation: (T, 3) the refiner's corrections right after the fit.
+    """
+
+    report: dict
+    rotation: torch.Tensor
+    translation: torch.Tensor
+
+    def state(self) -> dict:
+        """For a checkpoint (igavatar.training.checkpoint)."""
+        return {"report": self.report, "rotation": self.rotation, "translation": self.translation}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "SilhouetteFit":
+        return cls(dict(state["report"]), torch.as_tensor(state["rotation"]), torch.as_tensor(state["translation"]))
+
+    def apply(self, refiner: PoseRefiner) -> None:
+        """Set the refiner's corrections to the fit's (a resumed run, before its checkpoint is loaded)."""
+        with torch.no_grad():
+            refiner.rotation.copy_(self.rotation)
+            refiner.translation.copy_(self.translation)
+
+
+def corrected_data(data: TrainingData, refiner: PoseRefiner) -> TrainingData:
+    """`data` with the refined frames' bone transforms as the refiner's corrections pose them."""
+    transforms = data.bone_transforms.clone()
+    transforms[refiner.frames.cpu()] = refiner.corrected_transforms().detach().cpu().to(transforms.dtype)
+    return dataclasses.replace(data, bone_transforms=transforms)
 
 
 def silhouette_target(refiner: PoseRefiner, data: TrainingData, deformer: FastSnarfDeformer,
@@ -70,9 +109,9 @@ def frame_losses(target: SilhouetteTarget, transforms: torch.Tensor, K: torch.Te
 
 
 def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastSnarfDeformer,
-                       prior_vertices: np.ndarray, config: TrainConfig) -> dict:
+                       prior_vertices: np.ndarray, config: TrainConfig) -> SilhouetteFit:
     """Fit every refined frame's corrections to its mask (module docstring), in place; returns the
-    summary for the model's manifest.
+    summary for the model's manifest and the corrections.
 
     Args:
         refiner: the run's pose corrections (changed in place: only frames whose term fell move).
@@ -115,8 +154,9 @@ def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastS
     masked = target.frame_weight > 0
     outside_final = torch.where(worse, outside_before, outside_after)
     magnitudes = refiner.correction_magnitudes()
-    return {"frames": len(frames), "kept": int((~worse & masked).sum()),
-            "outside_px_before": float(outside_before[masked].mean()) if masked.any() else None,
-            "outside_px_after": float(outside_final[masked].mean()) if masked.any() else None,
-            "pose_rot_deg": magnitudes["pose_rot_deg"], "pose_root_mm": magnitudes["pose_root_mm"],
-            "seconds": time.perf_counter() - started}
+    report = {"frames": len(frames), "kept": int((~worse & masked).sum()),
+              "outside_px_before": float(outside_before[masked].mean()) if masked.any() else None,
+              "outside_px_after": float(outside_final[masked].mean()) if masked.any() else None,
+              "pose_rot_deg": magnitudes["pose_rot_deg"], "pose_root_mm": magnitudes["pose_root_mm"],
+              "seconds": time.perf_counter() - started}
+    return SilhouetteFit(report, refiner.rotation.detach().cpu().clone(), refiner.translation.detach().cpu().clone())

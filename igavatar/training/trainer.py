@@ -46,7 +46,7 @@ from igavatar.training.outline import outline_rays, weights_gradient_scale
 from igavatar.training.error_map import ErrorMap
 from igavatar.training.pose_align import align_training_poses, pass_steps
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
-from igavatar.training.pose_silhouette import fit_poses_to_masks
+from igavatar.training.pose_silhouette import SilhouetteFit, corrected_data
 from igavatar.training.body_prior import BodyInsidePoints, body_inside_loss, body_inside_points
 from igavatar.training.visual_hull import (
     CanonicalHull, canonical_visual_hull, free_space_loss, training_skin, voting_views,
@@ -73,7 +73,7 @@ class Trainer:
     def __init__(
         self, config: TrainConfig, data: TrainingData, avatar: Avatar, device: torch.device | str = "cpu",
         body_template: tuple[np.ndarray, np.ndarray] | None = None, pose_refiner: PoseRefiner | None = None,
-        shape_prior_vertices: np.ndarray | None = None,
+        pose_silhouette: SilhouetteFit | None = None,
     ):
         self.config = config
         self.data = data
@@ -104,10 +104,9 @@ class Trainer:
             self.pose_refiner.parameters(), lr=config.pose_lr, betas=(0.9, 0.99), eps=1e-8)
         # The whole-frame pose passes done (pose_align), at the steps pose_align_steps_at() names.
         self.pose_align_reports: list[dict] = []
-        # The poses' fit to the masks before the first step (pose_silhouette): its prior's (V, 3)
-        # canonical vertices, and its summary once done.
-        self.shape_prior_vertices = shape_prior_vertices
-        self.pose_silhouette_report: dict | None = None
+        # The poses' fit to the masks before the first step (pose_silhouette), when it ran: the
+        # refiner holds its corrections now, and the body-inside prior is voted on them.
+        self.pose_silhouette = pose_silhouette
         self._prepared: OrderedDict[int, PreparedFrame] = OrderedDict()
         self.error_map = None if config.error_sampling <= 0 else ErrorMap(
             int(data.images.shape[0]), data.image_size, config.error_cell_px)
@@ -118,7 +117,10 @@ class Trainer:
         self.body_inside: BodyInsidePoints | None = None
         self.body_inside_check: dict | None = None
         if config.loss_weights.body_inside > 0 and body_template is not None:
-            body = body_inside_points(*body_template, training_skin(self.avatar.deformer, data), voting_views(data), seed=config.seed)
+            # With corrections (a fit to the masks), the template is voted in the poses they make.
+            voting = data if pose_silhouette is None else corrected_data(data, self.pose_refiner)
+            body = body_inside_points(*body_template, training_skin(self.avatar.deformer, voting), voting_views(voting),
+                                      seed=config.seed)
             # No confirmed point, or a template that spills past fine masks (a fit too heavy): no term.
             used = body.trusted(config.body_inside_max_spill)
             self.body_inside_check = {
@@ -166,18 +168,6 @@ class Trainer:
         at = self.pose_align_steps_at()
         done = len(self.pose_align_reports)
         return done < len(at) and self.step >= at[done]
-
-    def pose_silhouette_due(self) -> bool:
-        """Whether the training poses are still to be fitted to the masks (before the first step)."""
-        return (self.pose_refiner is not None and self.config.pose_silhouette_steps > 0 and self.step == 0
-                and self.shape_prior_vertices is not None and self.pose_silhouette_report is None)
-
-    def fit_poses_to_masks(self) -> dict:
-        """Fit the training poses to the masks (igavatar.training.pose_silhouette); returns its summary.
-        All or nothing: interrupted, it leaves the corrections as they were."""
-        self.pose_silhouette_report = fit_poses_to_masks(self.pose_refiner, self.data, self.avatar.deformer,
-                                                         self.shape_prior_vertices, self.config)
-        return self.pose_silhouette_report
 
     def align_poses(self) -> dict:
         """Run the due whole-frame pose pass (igavatar.training.pose_align); returns its summary
@@ -472,7 +462,7 @@ class Trainer:
             "pose_optimizer": None if self.pose_optimizer is None else self.pose_optimizer.state_dict(),
             "error_map": None if self.error_map is None else self.error_map.state_dict(),
             "pose_align_reports": self.pose_align_reports,
-            "pose_silhouette_report": self.pose_silhouette_report,
+            "pose_silhouette": None if self.pose_silhouette is None else self.pose_silhouette.state(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -495,8 +485,6 @@ class Trainer:
             self.pose_refiner.load_state_dict(state["pose_refiner"])
             self.pose_optimizer.load_state_dict(state["pose_optimizer"])
             self.pose_align_reports = [dict(report) for report in state.get("pose_align_reports", [])]
-            report = state.get("pose_silhouette_report")
-            self.pose_silhouette_report = None if report is None else dict(report)
         if self.error_map is not None:
             self.error_map.load_state_dict(state["error_map"])
         self._prepared.clear()
