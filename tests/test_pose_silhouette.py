@@ -11,6 +11,7 @@ import pytest
 import torch
 import trimesh
 
+from igavatar.artifacts.manifest import read_artifact
 from igavatar.avatar.dataset import PRIOR_FILE, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.training import pose_silhouette
@@ -142,3 +143,59 @@ def test_the_trainer_votes_on_the_fitted_poses_and_keeps_the_fit(small_run, tmp_
     again = _refiner(dataset, noisy)
     restored.apply(again)
     assert torch.equal(again.rotation.detach(), refiner.rotation.detach())
+
+
+def _train_args(small_run, out, *extra: str) -> list[str]:
+    return ["train", "--dataset", str(small_run / "dataset"), "--out", str(out), "--preset", "tiny", "--device", "cpu",
+            "-q", "--steps", "6", "--refine-poses", "--pose-silhouette-steps", "20", *extra]
+
+
+def test_a_run_resumed_after_ctrl_c_redoes_nothing_and_matches_the_straight_run(cli_runner, small_run, tmp_path,
+                                                                                monkeypatch):
+    """Ctrl-C at step 3 of a run whose poses were fitted to the masks: --resume puts the fit's
+    corrections back (it does not fit again) and ends with the straight run's weights, bit for bit.
+    Ctrl-C during the fit itself leaves nothing behind."""
+    import os
+    import signal
+
+    import igavatar.training.trainer as trainer_module
+    from igavatar_cli.main import app
+
+    straight = tmp_path / "straight"
+    assert cli_runner.invoke(app, _train_args(small_run, straight)).exit_code == 0
+    real_step = trainer_module.Trainer.train_step
+
+    def interrupted_at_3(self):
+        if self.step == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_step(self)
+
+    monkeypatch.setattr(trainer_module.Trainer, "train_step", interrupted_at_3)
+    out = tmp_path / "model"
+    assert cli_runner.invoke(app, _train_args(small_run, out)).exit_code == 130
+    monkeypatch.undo()
+    fits = []
+    monkeypatch.setattr("stages.train.fit_poses_to_masks", lambda *args: fits.append(1))
+    resumed = cli_runner.invoke(app, _train_args(small_run, out, "--resume"))
+    assert resumed.exit_code == 0, resumed.output
+    assert not fits
+    with np.load(out / "weights.npz") as got, np.load(straight / "weights.npz") as want:
+        for key in want.files:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    with np.load(out / "refined_poses.npz") as got, np.load(straight / "refined_poses.npz") as want:
+        np.testing.assert_array_equal(got["rotation_corrections"], want["rotation_corrections"])
+    summaries = [read_artifact(path, expected="model")["data"]["pose_refinement"]["silhouette"] for path in (out, straight)]
+    assert summaries[0]["frames"] == summaries[1]["frames"] == 4
+    assert {k: v for k, v in summaries[0].items() if k != "seconds"} == {k: v for k, v in summaries[1].items()
+                                                                       if k != "seconds"}
+    monkeypatch.undo()
+
+    def interrupted_fit(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return pose_silhouette.frame_losses(*args, **kwargs)
+
+    monkeypatch.setattr(pose_silhouette, "frame_losses", interrupted_fit)
+    during = tmp_path / "during"
+    result = cli_runner.invoke(app, _train_args(small_run, during))
+    assert result.exit_code == 130 and "Traceback" not in result.output, result.output
+    assert not during.exists() and not any(tmp_path.glob("during*"))

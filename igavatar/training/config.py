@@ -160,10 +160,12 @@ class TrainConfig:
     nonrigid_window_fraction: float = 5 / 30
     """Their frequency window then opens over this fraction (official: epochs 1..6)."""
     refine_poses: bool = False
-    """Optimise per-frame corrections of the training frames' joint rotations and root translation
-    with the avatar (igavatar.training.pose_refine), with whole-frame pose passes (pose_align_*).
-    Off in every preset: with 5 degrees of noise a joint it halves CD-L1 (81 -> 42 mm, 67 without
-    the passes; exact poses 3.7) in a run 2.5x as long (tests/benchmarks/results/pose-noise.md)."""
+    """Optimise per-frame corrections of the training frames' joint rotations and root translation:
+    fitted to the masks before the first step (pose_silhouette_*), then with the avatar
+    (igavatar.training.pose_refine), optionally in whole-frame pose passes (pose_align_*). Off in
+    every preset: with 5 degrees of noise a joint it took CD-L1 from 22.2 to 6.5 mm (exact poses
+    3.7) at the cost of a 10 s fit (tests/benchmarks/results/pose-noise.md), but on poses that are
+    right it has not been shown to help (ZJU-MoCap 377, zju377-registration.md)."""
     pose_lr: float = 0.002
     """Learning rate of the pose corrections (radians, meters) when they start, falling linearly to 0
     at the end of training; each frame's are stepped only on the steps that draw it (SparseAdam),
@@ -180,8 +182,11 @@ class TrainConfig:
     pose_align_fractions: tuple[float, ...] = (0.3, 0.6)
     """With refine_poses: at these fractions of training every training frame's pose is fitted to
     its whole image, the avatar frozen (igavatar.training.pose_align); () for none."""
-    pose_align_steps: int = 16
-    """Steps of one frame's pose fit in such a pass (each costs about a training step)."""
+    pose_align_steps: int = 0
+    """Steps of one frame's pose fit in such a pass (each costs about a training step); 0, the
+    default, for no passes: after the fit to the masks (pose_silhouette_*) two passes of 16 steps
+    left the 5-degree noise run where it was (CD-L1 6.52 against 6.53 mm) in a run 5.8x as long
+    (tests/benchmarks/results/pose-noise.md)."""
     pose_align_lr: float = 0.004
     """Adam's rate of that fit (radians, meters): 16 steps can move a joint by up to about 3.7 degrees."""
     pose_silhouette_steps: int = 200
