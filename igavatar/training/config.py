@@ -163,9 +163,10 @@ class TrainConfig:
     """Optimise per-frame corrections of the training frames' joint rotations and root translation:
     fitted to the masks before the first step (pose_silhouette_*), then with the avatar
     (igavatar.training.pose_refine), optionally in whole-frame pose passes (pose_align_*). Off in
-    every preset: with 5 degrees of noise a joint it took CD-L1 from 22.2 to 6.5 mm (exact poses
-    3.7) at the cost of a 10 s fit (tests/benchmarks/results/pose-noise.md), but on poses that are
-    right it has not been shown to help (ZJU-MoCap 377, zju377-registration.md)."""
+    every preset: with 5 degrees of noise a joint it took CD-L1 from 22.2 to 6.7 mm and from 20.9 to
+    7.9 mm on two subjects (exact poses 3.7 and 4.3) at the cost of a 10 s fit
+    (tests/benchmarks/results/pose-noise.md), but on poses that are right it has not been shown to
+    help (ZJU-MoCap 377, zju377-registration.md)."""
     pose_lr: float = 0.002
     """Learning rate of the pose corrections (radians, meters) when they start, falling linearly to 0
     at the end of training; each frame's are stepped only on the steps that draw it (SparseAdam),
