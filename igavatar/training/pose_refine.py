@@ -80,8 +80,7 @@ class PoseRefiner(torch.nn.Module):
     def all_bone_transforms(self) -> torch.Tensor:
         """(T, J, 4, 4) float64 corrected transforms of every refined frame, in `frames` order (no grad)."""
         with torch.no_grad():
-            return torch.stack([self._corrected(self.local[s], self.rotation[s], self.translation[s])
-                                for s in range(len(self.frames))])
+            return self.corrected_transforms()
 
     def corrected_transforms(self) -> torch.Tensor:
         """(T, J, 4, 4) float64 corrected canonical -> posed transforms of every refined frame, in
