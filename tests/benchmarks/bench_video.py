@@ -10,7 +10,9 @@ synthesises a 360-degree turn, writes it to clip.mp4 (H.264, as a phone would) a
 - `truth`: the same frames (renamed frame_000123, the same held-out split) with their true
   poses, camera and masks: the capture the video path tries to recover;
 - `video-true`: `preprocess --video clip.mp4 --height H --focal F` with the true height and focal;
-- `video-default`: `preprocess --video clip.mp4` with nothing else given.
+- `video-default`: `preprocess --video clip.mp4` with nothing else given;
+- `video-true-refine`, `video-default-refine`: that variant's dataset (copied, not fitted again)
+  trained with `--refine-poses` (run after it).
 Each is trained (`--preset cpu --steps S`) and evaluated on the held-out frames: image metrics
 (PSNR/SSIM in the subject's box and the full image) and posed geometry against the scans.
 
@@ -51,6 +53,7 @@ MAIN_JOINTS = ("upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R", "
                "upperleg01.R", "lowerleg01.L", "lowerleg01.R", "foot.L", "foot.R", "neck01", "head")
 TEST_EVERY = 8
 VARIANTS = ("truth", "video-true", "video-default")
+REFINED = ("video-true-refine", "video-default-refine")
 IMAGE_KEYS = ("psnr_mask_bbox_db", "ssim_mask_bbox", "psnr_full_db", "ssim_full")
 GEOMETRY_KEYS = ("chamfer_l1_surface_mm", "volumetric_iou", "normal_consistency_surface")
 
@@ -201,7 +204,7 @@ def extra_evals(run: Path, truth: Path | None, args: argparse.Namespace) -> dict
 
 
 def train_and_eval(run: Path, gt: Path, args: argparse.Namespace, extra: list[str] | tuple = ()) -> dict:
-    model, report = run / "model", run / "report"
+    report = run / "report"
     started = time.perf_counter()
     if args.reuse and (report / "metrics.json").is_file():
         return _report_row(report, None)
@@ -274,8 +277,11 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
         else:
             started, video_s = time.perf_counter(), None
             if not (args.reuse and (run / "report" / "metrics.json").is_file()):
-                igavatar("preprocess", "--video", str(clip), "--run-dir", str(run), "--force",
-                         "--test-every", str(TEST_EVERY), *video_flags[variant])
+                if variant in REFINED:
+                    copy_video_dataset(base / variant.removesuffix("-refine"), run)
+                else:
+                    igavatar("preprocess", "--video", str(clip), "--run-dir", str(run), "--force",
+                             "--test-every", str(TEST_EVERY), *video_flags[variant])
                 video_s = time.perf_counter() - started
             capture = run / "capture"
             summary = {"video": video_summary(capture)}
@@ -287,11 +293,22 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
                      "pa_mpjpe_mm_max": max(alignment["pa_mpjpe_mm"]), "alignment_scale": alignment["scale"],
                      "fit_residual_px": summary["video"]["fit_residual_px"],
                      "video_s_per_frame": summary["video"]["seconds_per_frame"], "preprocess_s": video_s}
-        row[variant] = {**extra, **train_and_eval(run, gt, args)}
+        refine = ["--refine-poses"] if variant in REFINED else []
+        row[variant] = {**extra, **train_and_eval(run, gt, args, extra=refine)}
         if args.extra_evals:
             row[variant].update(extra_evals(run, None if variant == "truth" else truth, args))
         print(json.dumps({subject: {variant: row[variant]}}), flush=True)
     return row
+
+
+def copy_video_dataset(source: Path, run: Path) -> None:
+    """`source`'s video capture and dataset copied into `run`, so that a refined variant trains on
+    exactly the poses and masks of the variant it refines."""
+    if run.exists():
+        shutil.rmtree(run)
+    run.mkdir(parents=True)
+    for part in ("capture", "dataset"):
+        shutil.copytree(source / part, run / part)
 
 
 def noisy_capture(truth: Path, out: Path, degrees: float, root_m: float, seed: int) -> None:
@@ -345,7 +362,7 @@ def run_noise(subject: str, args: argparse.Namespace) -> dict:
 
 
 def noise_markdown(rows: list[dict], args: argparse.Namespace, command: str, made: str) -> str:
-    lines = [f"# Pose noise on the training frames, trained with and without pose refinement", "",
+    lines = ["# Pose noise on the training frames, trained with and without pose refinement", "",
              f"Commit `{made}`; command: `{command}`. CPU (2 cores), `--preset cpu --steps {args.steps}`, seed {args.seed}.",
              "Noise: each training frame's root and 15 fitted bones turned by the angle about a random axis, the root moved "
              "2 cm; held-out frames keep their exact poses. Geometry on the held-out frames against the scans.", "",
@@ -373,10 +390,10 @@ def markdown(rows: list[dict], args: argparse.Namespace, command: str, made: str
              f"Held out: every {TEST_EVERY}th frame. Image metrics at half the dataset's size. Alignment: see the script's docstring.",
              "", "| subject | variant | mask IoU | PA-MPJPE mm | fit px | s/frame | PSNR box | SSIM box | PSNR | "
              "CD-L1 mm | IoU | NC surf | limbs |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    extra = [(row["subject"], variant, row[variant]) for row in rows for variant in VARIANTS
+    extra = [(row["subject"], variant, row[variant]) for row in rows for variant in VARIANTS + REFINED
              if variant in row and "refined_psnr_mask_bbox_db" in row[variant]]
     for row in rows:
-        for variant in VARIANTS:
+        for variant in VARIANTS + REFINED:
             if variant not in row:
                 continue
             v = row[variant]
