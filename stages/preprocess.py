@@ -280,7 +280,7 @@ def _dataset_data(capture: CaptureV1, input_format: str, subject: PosedSubject, 
         "has_scans": bool(capture.scans),
         # Without masks, each frame's mask is cut by GrabCut around the posed body (igavatar.capture.segment).
         "masks": "given" if capture.has_masks else "estimated (grabcut)",
-        # A video's poses are igavatar's own estimate: `train` refines them by default.
+        # A video's poses are igavatar's own estimate (`train --refine-poses` can correct them; off by default).
         "poses": "estimated" if capture.input_format == "video" else "given",
         "subject": json.loads(json.dumps(subject.description)),
     }

@@ -166,7 +166,8 @@ class TrainConfig:
     every preset: with 5 degrees of noise a joint it took CD-L1 from 22.2 to 6.7 mm and from 20.9 to
     7.9 mm on two subjects (exact poses 3.7 and 4.3) at the cost of a 10 s fit
     (tests/benchmarks/results/pose-noise.md), but on poses that are right it has not been shown to
-    help (ZJU-MoCap 377, zju377-registration.md)."""
+    help (ZJU-MoCap 377, zju377-registration.md), and on the video path's fitted poses the held-out
+    frames, which keep the fit's poses, lost 0.9 dB (video-path-refine.md)."""
     pose_lr: float = 0.002
     """Learning rate of the pose corrections (radians, meters) when they start, falling linearly to 0
     at the end of training; each frame's are stepped only on the steps that draw it (SparseAdam),
