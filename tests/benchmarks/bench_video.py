@@ -277,12 +277,12 @@ def run_subject(subject: str, args: argparse.Namespace) -> dict:
         else:
             started, video_s = time.perf_counter(), None
             if not (args.reuse and (run / "report" / "metrics.json").is_file()):
-                if variant in REFINED:
+                if variant in REFINED:  # no preprocess of its own: no preprocess_s
                     copy_video_dataset(base / variant.removesuffix("-refine"), run)
                 else:
                     igavatar("preprocess", "--video", str(clip), "--run-dir", str(run), "--force",
                              "--test-every", str(TEST_EVERY), *video_flags[variant])
-                video_s = time.perf_counter() - started
+                    video_s = time.perf_counter() - started
             capture = run / "capture"
             summary = {"video": video_summary(capture)}
             ious = mask_iou(truth, capture, [f"frame_{i:06d}" for i in kept_indices(capture)])
