@@ -8,8 +8,9 @@ frame by its corrected pose, must lie inside the frame's mask and reach its outl
 Whole-frame passes against the avatar's renders (igavatar.training.pose_align) need an avatar to
 compare with, and one trained on wrong poses is their blurred average: after two passes, 5 degrees
 of noise a joint still cost CD-L1 42 mm against 3.7 with the exact poses
-(tests/benchmarks/results/pose-noise.md). The masks need no avatar. Before the first step, every training frame's corrections are fitted at once
-to the silhouette term of the video fit (igavatar.body.silhouette_fit): points of the dataset's
+(tests/benchmarks/results/pose-noise.md). The masks need no avatar. Before the first step, every
+training frame's corrections are fitted at once to the silhouette term of the video fit
+(igavatar.body.silhouette_fit): points of the dataset's
 shape prior (the naked template for tight clothes, the masks' visual hull for loose ones), skinned
 by the deformer's weights, must fall inside the mask, and the mask's outline must lie near the posed
 points (up to a margin for clothes). A prior keeps the corrections near the estimate; a silhouette

@@ -54,6 +54,7 @@ MAIN_JOINTS = ("upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R", "
 TEST_EVERY = 8
 VARIANTS = ("truth", "video-true", "video-default")
 REFINED = ("video-true-refine", "video-default-refine")
+ALL_VARIANTS = VARIANTS + REFINED  # the order of the tables
 IMAGE_KEYS = ("psnr_mask_bbox_db", "ssim_mask_bbox", "psnr_full_db", "ssim_full")
 GEOMETRY_KEYS = ("chamfer_l1_surface_mm", "volumetric_iou", "normal_consistency_surface")
 
@@ -390,10 +391,10 @@ def markdown(rows: list[dict], args: argparse.Namespace, command: str, made: str
              f"Held out: every {TEST_EVERY}th frame. Image metrics at half the dataset's size. Alignment: see the script's docstring.",
              "", "| subject | variant | mask IoU | PA-MPJPE mm | fit px | s/frame | PSNR box | SSIM box | PSNR | "
              "CD-L1 mm | IoU | NC surf | limbs |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    extra = [(row["subject"], variant, row[variant]) for row in rows for variant in VARIANTS + REFINED
+    extra = [(row["subject"], variant, row[variant]) for row in rows for variant in ALL_VARIANTS
              if variant in row and "refined_psnr_mask_bbox_db" in row[variant]]
     for row in rows:
-        for variant in VARIANTS + REFINED:
+        for variant in ALL_VARIANTS:
             if variant not in row:
                 continue
             v = row[variant]
