@@ -206,6 +206,12 @@ class TrainConfig:
     """A root correction of this many meters costs as much as a radian in that fit: training's
     2 cm (pose_translation_scale_m) held the root where it was, since a silhouette moved by a few
     centimetres gains less than a pixel of the term."""
+    pose_silhouette_smoothness: float = 0.3
+    """Weight in that fit of the refined joints' acceleration between frames named as neighbours in
+    one clip, per source frame squared (igavatar.training.pose_time), against the silhouette term's
+    mean px; 0 for none. A mask says little of depth, and the estimate's errors differ from frame
+    to frame: with 5 degrees of noise a joint the fit left the major joints 22-28 mm off on three
+    subjects, 12-16 mm with this term (tests/benchmarks/results/pose-noise-temporal.md)."""
     shape_init_steps: int = 1000
     """Steps fitting the SDF to the template's SDF before photometric training (0 = sphere)."""
     shape_init_points: int = 16384

@@ -37,9 +37,19 @@ from igavatar.skinning.grid import sample_skinning_weights
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData
 from igavatar.training.pose_refine import PoseRefiner
+from igavatar.training.pose_time import TimeTriplets, time_triplets
 
 #: Points of the prior the silhouette checks in every frame (as the video fit).
 PRIOR_POINTS = 600
+#: A posed joint accelerating by this many meters per source frame squared costs as much, times
+#: pose_silhouette_smoothness, as the silhouette term's mean px (5 degrees of noise a joint puts the
+#: major joints' second differences at a few cm).
+ACCELERATION_SCALE_M = 0.02
+#: Accelerations well above this (m per source frame squared) pull less and less (Geman-McClure):
+#: they are the person's motion between frames far apart, or a cut, not an estimate's noise. A
+#: 360-degree turn in 4 frames accelerates a shoulder by about 0.4 m, and a quadratic term pulled
+#: such poses 0.4 m off.
+ACCELERATION_CAP_M = 0.1
 
 
 @dataclass(frozen=True)
@@ -109,6 +119,23 @@ def frame_losses(target: SilhouetteTarget, transforms: torch.Tensor, K: torch.Te
     return loss, outside.mean(1)
 
 
+def temporal_loss(triplets: TimeTriplets, transforms: torch.Tensor, joints_canonical: torch.Tensor) -> torch.Tensor:
+    """Mean over the triplets and the refined joints of (acceleration / ACCELERATION_SCALE_M)^2,
+    capped smoothly near ACCELERATION_CAP_M (igavatar.training.pose_time); a scalar, 0 without
+    triplets.
+
+    Args:
+        transforms: (T, K, 4, 4) canonical -> posed world of the refined joints;
+            joints_canonical: (K, 3) float64 their canonical positions.
+    """
+    if len(triplets) == 0:
+        return transforms.new_zeros(())
+    posed = (transforms[..., :3, :3] @ joints_canonical[None, :, :, None])[..., 0] + transforms[..., :3, 3]
+    squared = triplets.acceleration(posed).square().sum(-1)  # (M, K) m^2 per source frame^4
+    capped = squared * ACCELERATION_CAP_M**2 / (squared + ACCELERATION_CAP_M**2)
+    return (capped / ACCELERATION_SCALE_M**2).mean()
+
+
 def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastSnarfDeformer,
                        prior_vertices: np.ndarray, config: TrainConfig) -> SilhouetteFit:
     """Fit every refined frame's corrections to its mask (module docstring), in place; returns the
@@ -119,11 +146,16 @@ def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastS
         data: the training frames (masks, cameras); deformer: its skinning weights pose the prior.
         prior_vertices: (V, 3) canonical vertices of the dataset's shape prior.
         config: pose_silhouette_steps, pose_silhouette_lr, pose_silhouette_coverage,
-            pose_silhouette_prior_weight, pose_silhouette_translation_scale_m.
+            pose_silhouette_prior_weight, pose_silhouette_translation_scale_m,
+            pose_silhouette_smoothness (the temporal term over frames named as neighbours).
     """
     started = time.perf_counter()
     target = silhouette_target(refiner, data, deformer, prior_vertices)
     frames = refiner.frames.cpu()
+    triplets = time_triplets([data.frame_names[int(i)] for i in frames], data.bone_transforms[frames, 0, :3, :3])
+    # The refined joints' canonical positions: the canonical pose's joint frames' origins.
+    joint_index = refiner.joints.cpu()
+    joints = torch.linalg.inv(refiner.canonical_inverse.cpu())[joint_index, :3, 3].double()
     K, w2c = data.K[frames].double(), data.w2c[frames].double()
     device = refiner.rotation.device
     saved = refiner.rotation.detach().clone(), refiner.translation.detach().clone()
@@ -134,11 +166,15 @@ def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastS
                                                   config.pose_silhouette_coverage)
         for _ in range(config.pose_silhouette_steps):
             optimizer.zero_grad(set_to_none=True)
-            loss, _ = frame_losses(target, refiner.corrected_transforms().cpu(), K, w2c, config.pose_silhouette_coverage)
+            transforms = refiner.corrected_transforms().cpu()
+            loss, _ = frame_losses(target, transforms, K, w2c, config.pose_silhouette_coverage)
             prior = (refiner.rotation.square().sum((1, 2))
                      + (refiner.translation / config.pose_silhouette_translation_scale_m).square().sum(1)).cpu()
             total = (target.frame_weight * (loss + config.pose_silhouette_prior_weight * prior)).sum()
-            (total / target.frame_weight.sum().clamp_min(1.0)).backward()
+            total = total / target.frame_weight.sum().clamp_min(1.0)
+            if config.pose_silhouette_smoothness > 0:
+                total = total + config.pose_silhouette_smoothness * temporal_loss(triplets, transforms[:, joint_index], joints)
+            total.backward()
             optimizer.step()
         with torch.no_grad():
             after, outside_after = frame_losses(target, refiner.corrected_transforms().cpu(), K, w2c,
@@ -155,7 +191,7 @@ def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastS
     masked = target.frame_weight > 0
     outside_final = torch.where(worse, outside_before, outside_after)
     magnitudes = refiner.correction_magnitudes()
-    report = {"frames": len(frames), "kept": int((~worse & masked).sum()),
+    report = {"frames": len(frames), "kept": int((~worse & masked).sum()), "time_triplets": len(triplets),
               "outside_px_before": float(outside_before[masked].mean()) if masked.any() else None,
               "outside_px_after": float(outside_final[masked].mean()) if masked.any() else None,
               "pose_rot_deg": magnitudes["pose_rot_deg"], "pose_root_mm": magnitudes["pose_root_mm"],
