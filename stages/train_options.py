@@ -54,8 +54,11 @@ class TrainOptions:
     refine_poses: bool | None = None
     pose_lr: float | None = None
     pose_prior_weight: float | None = None
-    #: Steps of each frame's whole-image pose fit in the pose passes (0: no passes); None: the preset's.
+    #: Steps of the training poses' fit to the masks (0: none); None: the preset's.
     pose_silhouette_steps: int | None = None
+    #: Weight of that fit's temporal term (0: none); None: the preset's.
+    pose_silhouette_smoothness: float | None = None
+    #: Steps of each frame's whole-image pose fit in the pose passes (0: no passes); None: the preset's.
     pose_align_steps: int | None = None
     #: None: the preset's (the colour loss reaches the geometry through the normal, as the paper's code).
     color_normal_gradient: bool | None = None
@@ -90,7 +93,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         sdf_encoding=options.sdf_encoding, smooth_pairs=options.smooth_pairs, smooth_form=options.smooth_form, smooth_band=options.smooth_band,
         table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
         refine_poses=options.refine_poses, pose_lr=options.pose_lr, pose_prior_weight=options.pose_prior_weight,
-        pose_silhouette_steps=options.pose_silhouette_steps,
+        pose_silhouette_steps=options.pose_silhouette_steps, pose_silhouette_smoothness=options.pose_silhouette_smoothness,
         pose_align_steps=options.pose_align_steps,
         body_inside_max_spill=options.body_inside_max_spill, error_sampling=options.error_sampling,
         outline_sampling=options.outline_sampling, beta_anneal_fraction=options.beta_anneal_fraction,
