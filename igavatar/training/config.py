@@ -163,9 +163,9 @@ class TrainConfig:
     """Optimise per-frame corrections of the training frames' joint rotations and root translation:
     fitted to the masks before the first step (pose_silhouette_*), then with the avatar
     (igavatar.training.pose_refine), optionally in whole-frame pose passes (pose_align_*). Off in
-    every preset: with 5 degrees of noise a joint it took CD-L1 from 22.2 to 6.7 mm and from 20.9 to
-    7.9 mm on two subjects (exact poses 3.7 and 4.3) at the cost of a 10 s fit
-    (tests/benchmarks/results/pose-noise.md), but on poses that are right it has not been shown to
+    every preset: with 5 degrees of noise a joint it took CD-L1 from 22.2 to 5.7 mm and from 20.9 to
+    6.4 mm on two subjects (exact poses 3.7 and 4.3) at the cost of a 10 s fit
+    (tests/benchmarks/results/pose-noise-temporal.md), but on poses that are right it has not been shown to
     help (ZJU-MoCap 377, zju377-registration.md), and on the video path's fitted poses the held-out
     frames, which keep the fit's poses, lost 0.9 dB (video-path-refine.md)."""
     pose_lr: float = 0.002

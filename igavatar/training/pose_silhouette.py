@@ -14,7 +14,9 @@ training frame's corrections are fitted at once to the silhouette term of the vi
 shape prior (the naked template for tight clothes, the masks' visual hull for loose ones), skinned
 by the deformer's weights, must fall inside the mask, and the mask's outline must lie near the posed
 points (up to a margin for clothes). A prior keeps the corrections near the estimate; a silhouette
-says almost nothing of a twist about a limb, and the prior holds those corrections near zero.
+says almost nothing of a twist about a limb, and the prior holds those corrections near zero. It
+says little of depth either: a temporal term (pose_silhouette_smoothness) asks the refined joints
+to move smoothly between frames that are neighbours in one clip (igavatar.training.pose_time).
 
 A frame keeps its fit only if its silhouette term went down. The fit is all or nothing: an
 interrupt puts every correction back. The corrections it found are kept apart from training's later
@@ -46,9 +48,9 @@ PRIOR_POINTS = 600
 #: major joints' second differences at a few cm).
 ACCELERATION_SCALE_M = 0.02
 #: Accelerations well above this (m per source frame squared) pull less and less (Geman-McClure):
-#: they are the person's motion between frames far apart, or a cut, not an estimate's noise. A
-#: 360-degree turn in 4 frames accelerates a shoulder by about 0.4 m, and a quadratic term pulled
-#: such poses 0.4 m off.
+#: they are the person's fast motion, or a cut, not an estimate's noise. It is not enough alone: a
+#: 360-degree turn in 4 frames (0.2-0.7 m a joint) was still pulled 0.35 m off, which the guard on
+#: the root's turn (pose_time.MAX_ROOT_TURN_DEG) prevents.
 ACCELERATION_CAP_M = 0.1
 
 
