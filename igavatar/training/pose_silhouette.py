@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from igavatar.body.image_maps import huber_px
+from igavatar.body.rotations import invert_rigid
 from igavatar.body.silhouette_fit import HUBER_PX, SilhouetteTarget, spread_subset
 from igavatar.model.deformer import FastSnarfDeformer
 from igavatar.skinning.grid import sample_skinning_weights
@@ -157,7 +158,7 @@ def fit_poses_to_masks(refiner: PoseRefiner, data: TrainingData, deformer: FastS
     triplets = time_triplets([data.frame_names[int(i)] for i in frames], data.bone_transforms[frames, 0, :3, :3])
     # The refined joints' canonical positions: the canonical pose's joint frames' origins.
     joint_index = refiner.joints.cpu()
-    joints = torch.linalg.inv(refiner.canonical_inverse.cpu())[joint_index, :3, 3].double()
+    joints = invert_rigid(refiner.canonical_inverse.cpu().double())[joint_index, :3, 3]
     K, w2c = data.K[frames].double(), data.w2c[frames].double()
     device = refiner.rotation.device
     saved = refiner.rotation.detach().clone(), refiner.translation.detach().clone()

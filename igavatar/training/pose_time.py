@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import torch
 
+from igavatar.body.rotations import matrix_to_axis_angle
+
 _NUMBERED = re.compile(r"^(.*?)(\d+)$")
 #: Neighbours whose estimated root turns by more than this are not a video's neighbouring frames
 #: (a 360-degree turn in a few frames, 90 degrees a step): a smooth path through them is not the
@@ -61,7 +63,6 @@ class TimeTriplets:
         slope_after = (points[self.following] - points[self.middle]) / b.view(shape)
         slope_before = (points[self.middle] - points[self.previous]) / a.view(shape)
         return 2.0 * (slope_after - slope_before) / (a + b).view(shape)
-
 
     def subset(self, keep: torch.Tensor) -> "TimeTriplets":
         """The triplets where keep (M,) bool is true."""
@@ -106,5 +107,4 @@ def time_triplets(frame_names: list[str], root_rotations: torch.Tensor | None = 
 def _turn_deg(rotations: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
     """(M,) angle in degrees between rotations (T, 3, 3) at positions first and second (M,)."""
     relative = rotations[first].double().transpose(-1, -2) @ rotations[second].double()
-    cosine = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.arccos(cosine))
+    return torch.rad2deg(matrix_to_axis_angle(relative).norm(dim=-1))
