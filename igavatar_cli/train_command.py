@@ -23,7 +23,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
 @user_errors
 @help_panels({INPUTS: ("dataset", "out", "run_dir", "resume", "force"), QUALITY: ("preset", "steps", "rays", "samples", "seed", "device", "decoupled_color"),
               "Poses from a video": ("refine_poses", "pose_lr", "pose_prior_weight", "pose_silhouette_steps",
-                                     "pose_silhouette_smoothness", "pose_align_steps"),
+                                     "pose_silhouette_smoothness", "pose_prior_vote", "pose_align_steps"),
               "Watch it in a browser": ("view", "view_host", "view_port", "view_mesh_every", "view_mesh_resolution"),
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "beta_anneal_fraction", "lr_decay_power", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
@@ -62,6 +62,12 @@ def train(
         help="With --refine-poses: weight, in that fit, of the joints' acceleration between frames whose names "
              "number them as neighbours in one clip (the masks say little of depth; an estimate's errors change "
              "from frame to frame); 0: none \\[default: 0.3].", min=0.0)] = None,
+    pose_prior_vote: Annotated[Optional[bool], typer.Option(
+        "--pose-prior-vote/--no-pose-prior-vote",
+        help="With --refine-poses: where preprocess kept the naked template as the shape prior (its loose-clothing "
+             "test reads poses that are off as a body posed wrong, not as loose clothes), ask that test again on the "
+             "poses fitted to the masks, and train on the masks' visual hull where it now wins (a dress on noisy "
+             "poses) \\[default: on].")] = None,
     pose_align_steps: Annotated[Optional[int], typer.Option(
         help="With --refine-poses: steps of each training frame's pose fit to its whole image, the avatar frozen, "
              "at 30 % and 60 % of training (each step costs about a training step, per frame; 16 is a useful "
@@ -163,7 +169,8 @@ def train(
         body_inside_weight=body_inside_weight, body_inside_max_spill=body_inside_max_spill, sdf_encoding=sdf_encoding, table_adam=table_adam, table_lr_factor=table_lr_factor,
         seed=seed, device=device, resume=resume, force=force, refine_poses=refine_poses, pose_lr=pose_lr,
         pose_prior_weight=pose_prior_weight, pose_silhouette_steps=pose_silhouette_steps,
-        pose_silhouette_smoothness=pose_silhouette_smoothness, pose_align_steps=pose_align_steps,
+        pose_silhouette_smoothness=pose_silhouette_smoothness, pose_prior_vote=pose_prior_vote,
+        pose_align_steps=pose_align_steps,
         color_normal_gradient=color_normal_gradient, color_grid=color_grid,
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
         color_weights_gradient=color_weights_gradient, color_weights_outline_px=color_weights_outline_px,

@@ -23,6 +23,8 @@ Dataset layout (schema `dataset`, version 1):
                          "template" | "visual_hull" | "capsules"; "loose_clothing" says why)
     body_template.ply    the body model's naked template in the canonical pose, when the shape prior
                          is not that template: eval's limb check reads it
+    body_weights.npz     weights (V, J): the naked template's skinning weights, when there is one
+                         (`train --refine-poses` votes the prior again on its fitted poses)
     contact_sheet.png    frames with mask and projected skeleton, to check alignment by eye
 """
 
@@ -48,11 +50,11 @@ from igavatar.capture.segment import CLOTHING_BAND_M, GRABCUT_ITERATIONS, estima
 from igavatar.capture.subject import CanonicalSubject, PosedSubject, canonicalize, subject_from_capture
 from igavatar.capture.subject_skeleton import skeleton_subject
 from igavatar.capture.subject_smpl import smpl_model_for
-from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, PRIOR_FILE
+from igavatar.avatar.dataset import BODY_TEMPLATE_FILE, BODY_WEIGHTS_FILE, PRIOR_FILE
 from igavatar.capture.loose_clothing import LOOSE_DISTANCE_M, LOOSE_OVER_SPILL, LOOSE_SHARE
 from igavatar.capture.shape_prior import (
     BOX_MARGIN_M, GRID_MARGIN_M, HULL_CELL_M, HULL_PRIOR_VERSION, LOOSE_RULE_VERSION, MIN_HULL_VIEWS, SHAPE_PRIORS,
-    TEMPLATE_WEIGHT_SMOOTHING, TEMPLATE_WEIGHT_SPREAD, ShapePrior, WeightBlur, body_prior, hull_prior, hull_views,
+    TEMPLATE_WEIGHT_SMOOTHING, TEMPLATE_WEIGHT_SPREAD, PriorBody, ShapePrior, WeightBlur, body_prior, hull_prior, hull_views,
     posed_template_fit, segmentation_body,
 )
 from igavatar.errors import InputError
@@ -252,6 +254,8 @@ def _write_arrays(tmp: Path, capture: CaptureV1, subject: PosedSubject, canonica
         canonical_box=prior.canonical_box().numpy().astype(np.float32),
     )
     trimesh.Trimesh(prior.vertices.numpy(), prior.faces.numpy(), process=False).export(tmp / PRIOR_FILE)
+    if canonical.template_vertices is not None:
+        np.savez_compressed(tmp / BODY_WEIGHTS_FILE, weights=subject.template_weights.numpy().astype(np.float32))
     if prior.kind != "template" and canonical.template_vertices is not None:
         trimesh.Trimesh(canonical.template_vertices.numpy(), subject.template_faces.numpy(),
                         process=False).export(tmp / BODY_TEMPLATE_FILE)
@@ -318,12 +322,12 @@ def run_preprocess(options: PreprocessOptions, progress: ProgressSink = NULL_PRO
             hull_masks = _write_frames(tmp, capture, subject, canonical, K, size_hw, voting, progress)
         fit = None
         if voting and canonical.template_vertices is not None and options.shape_prior == "auto":
-            fit = posed_template_fit(subject, canonical, voting, hull_masks, K, capture.w2c)
+            fit = posed_template_fit(PriorBody.of(subject, canonical), voting, hull_masks, K, capture.w2c)
             if not fit.hull_is_better:
                 voting = []  # tight clothes, or poses too far off for a hull: the naked template is the better prior
         with clock("skinning_grid_s"):
-            prior = hull_prior(subject, canonical, voting, hull_masks, K, capture.w2c, options.grid_resolution,
-                               options.weight_blur) if voting else None
+            prior = hull_prior(PriorBody.of(subject, canonical), voting, hull_masks, K, capture.w2c,
+                               options.grid_resolution, options.weight_blur) if voting else None
             if prior is None:
                 prior = body_prior(subject, canonical, options.grid_resolution, options.weight_blur)
         _write_arrays(tmp, capture, subject, canonical, prior, K)

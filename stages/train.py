@@ -6,7 +6,9 @@ TrainOptions and the TrainConfig they resolve to are stages.train_options.
 
 Model layout (schema `model`, version 1):
     weights.npz          avatar parameters and buffers, canonical occupancy grid (no pickle)
-    subject.npz          skeleton, skinning grid and boxes (copied from the dataset)
+    subject.npz          skeleton, skinning grid and boxes (copied from the dataset, or the prior voted
+                         on the poses fitted to the masks: stages.train_prior)
+    prior.ply            that prior's mesh, the masks' visual hull (only then)
     shape_init.npz       SDF weights after shape initialization (reused by later runs)
     training_log.csv     step, losses, PSNR, beta, samples, seconds
     validation/*.png     ground truth | render | normals of a training and a test frame
@@ -35,6 +37,7 @@ from igavatar.artifacts.manifest import InputRecord, build_manifest, sha256_file
 from igavatar.artifacts.png import write_png
 from igavatar.avatar.dataset import PRIOR_FILE, DatasetArtifact, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
+from igavatar.avatar.subject import SUBJECT_FILE
 from igavatar.errors import IgavatarError, InputError, Terminated
 from igavatar.interrupts import deferred_interrupts, raise_if_interrupted
 from igavatar.metrics.image import psnr as image_psnr
@@ -51,6 +54,7 @@ from stages.common import StageClock, skipped, unchanged
 from stages.progress import NULL_PROGRESS, ProgressSink
 from stages.resources import TRAIN_BYTES_PER_SAMPLE, peak_cuda_bytes, peak_ram_bytes, require_memory
 from stages.train_options import TrainOptions, resolve_config, with_outline_px
+from stages.train_prior import REVOTED_PRIOR_FILE, RevotedPrior, revote_prior
 
 if TYPE_CHECKING:  # viser is imported only for --view
     from stages.train_view import TrainingMonitor
@@ -123,11 +127,11 @@ def _fit_poses_to_masks(config: TrainConfig, dataset: DatasetArtifact, data, ava
 
 
 def _shape_initialize(
-    avatar: Avatar, config: TrainConfig, dataset: DatasetArtifact, cache_paths: list[Path], progress: ProgressSink
+    avatar: Avatar, config: TrainConfig, template: Path, canonical_box: np.ndarray, cache_paths: list[Path],
+    progress: ProgressSink,
 ) -> tuple[dict, float, Path | None]:
-    """Fit the SDF to the template (or reuse a cached fit); returns (sdf state, seconds, the cache reused or None)."""
-    template = dataset.path / PRIOR_FILE
-    canonical_box = dataset.subject.canonical_box
+    """Fit the SDF to the prior's mesh at `template` inside `canonical_box` (2, 3) (or reuse a cached
+    fit); returns (sdf state, seconds, the cache reused or None)."""
     key = shape_init_key(config, sha256_file(template) if template.is_file() else None, canonical_box)
     cached, path = cached_shape_init(avatar, key, cache_paths)
     if cached is not None:
@@ -230,10 +234,10 @@ def _train_loop(trainer: Trainer, config: TrainConfig, log: TrainingLog, save_ch
 
 
 def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, float], validation: dict,
-                config: TrainConfig) -> dict:
+                config: TrainConfig, revote: RevotedPrior | None) -> dict:
     """The model manifest's data: the dataset's facts it carries on, the run's outcome and speed."""
     data, train_seconds = dataset.data, trainer.seconds
-    return {
+    model_data = {
         "dataset": str(dataset.path),
         # The dataset's facts every later stage needs, carried over as the dataset recorded them.
         **{key: data[key] for key in ("body_model", "joint_names", "pose_dim", "image_size", "canonical_box", "splits")},
@@ -254,16 +258,25 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
                                 **{k: round(v, 4) for k, v in trainer.pose_refiner.correction_magnitudes().items()},
                                 "silhouette": None if trainer.pose_silhouette is None else
                                 _rounded(trainer.pose_silhouette.report),
-                                "passes": [_rounded(report) for report in trainer.pose_align_reports]}}
+                                "passes": [_rounded(report) for report in trainer.pose_align_reports],
+                                "prior_vote": None if revote is None else revote.report}}
            if trainer.pose_refiner is not None else {}),
     }
+    if revote is not None and revote.subject is not None:
+        model_data["canonical_box"] = revote.subject.canonical_box.tolist()  # the hull's, not the dataset's
+    return model_data
 
 
 def _write_model_files(tmp: Path, dataset: DatasetArtifact, trainer: Trainer, shape_state: dict, log: TrainingLog,
-                       validation: dict) -> None:
-    """weights.npz, subject.npz (the dataset's), shape_init.npz, training_log.csv and validation/*.png."""
+                       validation: dict, revote: RevotedPrior | None) -> None:
+    """weights.npz, subject.npz (the dataset's, or the prior voted on the fitted poses with its mesh
+    prior.ply), shape_init.npz, training_log.csv and validation/*.png."""
     save_state(tmp / "weights.npz", {"avatar": trainer.avatar.state_dict(), "canonical_grid": trainer.canonical_grid.state_dict()})
-    shutil.copyfile(dataset.path / "subject.npz", tmp / "subject.npz")
+    if revote is not None and revote.subject is not None:
+        revote.subject.write(tmp / SUBJECT_FILE)
+        shutil.copyfile(revote.mesh_path, tmp / REVOTED_PRIOR_FILE)
+    else:
+        shutil.copyfile(dataset.path / SUBJECT_FILE, tmp / SUBJECT_FILE)
     save_state(tmp / "shape_init.npz", shape_state)
     shutil.copyfile(log.path, tmp / "training_log.csv")
     if trainer.pose_refiner is not None:
@@ -300,16 +313,25 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
     run_key = sha256_json({"config": config_json, "dataset": dataset_sha})
     # Refused before anything in the work folder is touched.
     resumed = checkpoint_of_this_run(checkpoint, run_key, config_json, dataset_sha) if options.resume else None
+    # The poses' fit to the masks and the prior's vote on them come first: the SDF starts from that prior.
+    refiner = _pose_refiner(config, dataset, data)
+    silhouette = _fit_poses_to_masks(config, dataset, data, avatar, refiner, resumed, progress)
+    revote = revote_prior(config, dataset, data, refiner, silhouette, work, progress)
+    subject, prior_mesh = dataset.subject, dataset.path / PRIOR_FILE
+    if revote is not None and revote.subject is not None:
+        progress.status(f"the shape prior is now the masks' visual hull (loose {revote.report['loose']:.3f}, spill "
+                        f"{revote.report['spill']:.3f} on the fitted poses)")
+        subject, prior_mesh, data = revote.subject, revote.mesh_path, revote.with_boxes(data)
+        torch.manual_seed(config.seed)  # the same start as an avatar built on this prior from the first
+        avatar = build_avatar(config, subject, dataset.pose_dim)
     shape_state, shape_seconds, reused_from = _shape_initialize(
-        avatar, config, dataset, [work / "shape_init.npz", out / "shape_init.npz"], progress
+        avatar, config, prior_mesh, subject.canonical_box, [work / "shape_init.npz", out / "shape_init.npz"], progress
     )
     clock.add("shape_init_s", shape_seconds)
     if reused_from != work / "shape_init.npz":
         save_state(work / "shape_init.npz", shape_state)
     # The template is read only when the body-inside term will use it.
     body_template = _body_template(dataset) if config.loss_weights.body_inside > 0 else None
-    refiner = _pose_refiner(config, dataset, data)
-    silhouette = _fit_poses_to_masks(config, dataset, data, avatar, refiner, resumed, progress)
     trainer = Trainer(config, data, avatar, device, body_template=body_template, pose_refiner=refiner,
                       pose_silhouette=silhouette)
     _say_why_body_inside_is_off(trainer.body_inside_check, progress)
@@ -342,9 +364,9 @@ def _run_train(options: TrainOptions, progress: ProgressSink) -> dict:
             monitor.validation(trainer.step, next(iter(validation.values()))[0])
     finally:
         view_cost = None if monitor is None else monitor.close(f"stopped at step {trainer.step} of {trainer.total_steps}")
-    data_json = _model_data(dataset, trainer, last, validation, config)
+    data_json = _model_data(dataset, trainer, last, validation, config, revote)
     with atomic_directory(out, kind="model", inputs=[dataset.path]) as tmp:
-        _write_model_files(tmp, dataset, trainer, shape_state, log, validation)
+        _write_model_files(tmp, dataset, trainer, shape_state, log, validation, revote)
         build_manifest(
             "model", tmp, stage="train", config=config_json, inputs=[InputRecord(dataset.path, "dataset")],
             data=data_json, seed=config.seed, device=str(device), timings=clock.finish(),

@@ -56,6 +56,8 @@ class TrainOptions:
     pose_prior_weight: float | None = None
     #: Steps of the training poses' fit to the masks (0: none); None: the preset's.
     pose_silhouette_steps: int | None = None
+    #: False: the shape prior is not voted again on the fitted poses; None: the preset's (on).
+    pose_prior_vote: bool | None = None
     #: Weight of that fit's temporal term (0: none); None: the preset's.
     pose_silhouette_smoothness: float | None = None
     #: Steps of each frame's whole-image pose fit in the pose passes (0: no passes); None: the preset's.
@@ -94,6 +96,7 @@ def resolve_config(options: TrainOptions) -> TrainConfig:
         table_adam=options.table_adam, table_lr_factor=options.table_lr_factor,
         refine_poses=options.refine_poses, pose_lr=options.pose_lr, pose_prior_weight=options.pose_prior_weight,
         pose_silhouette_steps=options.pose_silhouette_steps, pose_silhouette_smoothness=options.pose_silhouette_smoothness,
+        pose_prior_vote=options.pose_prior_vote,
         pose_align_steps=options.pose_align_steps,
         body_inside_max_spill=options.body_inside_max_spill, error_sampling=options.error_sampling,
         outline_sampling=options.outline_sampling, beta_anneal_fraction=options.beta_anneal_fraction,

@@ -30,6 +30,9 @@ FRAMES_FILE = "frames.npz"
 PRIOR_FILE = "template.ply"
 #: The naked template beside a prior that is not it (`preprocess --shape-prior visual-hull`).
 BODY_TEMPLATE_FILE = "body_template.ply"
+#: The naked template's skinning weights, `weights` (V, J), when the capture has a body model: `train
+#: --refine-poses` votes the shape prior again on the poses it fitted (igavatar.training.prior_vote).
+BODY_WEIGHTS_FILE = "body_weights.npz"
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,6 +115,16 @@ class DatasetArtifact(ManifestFacts):
     @cached_property
     def subject(self) -> SubjectArrays:
         return SubjectArrays.read(self.path / SUBJECT_FILE)
+
+    def body_weights(self, n_vertices: int) -> np.ndarray | None:
+        """(V, J) float32 skinning weights of the naked template of `n_vertices` vertices, or None for
+        a dataset without them (no body model, or made before preprocess wrote them)."""
+        path = self.path / BODY_WEIGHTS_FILE
+        if not path.is_file():
+            return None
+        arrays = read_npz(path, {"weights": ("V", "J")}, "the body's skinning weights",
+                          sizes={"V": n_vertices, "J": self.subject.n_joints})
+        return arrays["weights"].astype(np.float32)
 
     def image_path(self, name: str) -> Path:
         return self.path / "images" / f"{name}.png"

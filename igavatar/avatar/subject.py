@@ -52,6 +52,12 @@ class SubjectArrays:
         arrays["joint_names"] = tuple(str(n) for n in arrays["joint_names"])
         return cls(**arrays)
 
+    def write(self, path: Path) -> None:
+        """subject.npz at `path` (the layout `read` reads)."""
+        arrays = {name: getattr(self, name) for name in _SHAPES}
+        arrays["joint_names"] = np.array(self.joint_names, dtype=np.str_)
+        np.savez_compressed(path, **arrays)
+
     @property
     def skeleton(self) -> Skeleton:
         return Skeleton(self.parents, self.rest_joints, self.joint_names)

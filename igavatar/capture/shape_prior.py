@@ -3,7 +3,8 @@ template, the masks' visual hull (a bare skeleton, loose clothing) or capsules a
 
     prior = body_prior(subject, canonical, (64, 16, 64), WeightBlur())          # template or capsules
     views = hull_views(capture, canonical, "auto")                             # frames whose masks vote
-    prior = hull_prior(subject, canonical, views, masks, K, w2c, (64, 16, 64), WeightBlur()) or prior
+    body = PriorBody.of(subject, canonical)                                    # or with other poses
+    prior = hull_prior(body, views, masks, K, w2c, (64, 16, 64), WeightBlur()) or prior
 
 The constants are the measured policy (`preprocess` records the versions in its manifest so that
 a change redoes the dataset); docs/DESIGN.md "Geometry" and docs/RESEARCH.md give the measurements.
@@ -17,7 +18,7 @@ import numpy as np
 import torch
 
 from igavatar.body.capsules import capsule_prior
-from igavatar.body.skeleton import linear_blend_skinning
+from igavatar.body.skeleton import Skeleton, linear_blend_skinning
 from igavatar.capture.capture_v1 import CaptureV1
 from igavatar.capture.ghost_limbs import GhostTest, PosedBones
 from igavatar.capture.loose_clothing import TemplateFit, template_fit
@@ -124,19 +125,51 @@ def padded_boxes(boxes: torch.Tensor) -> torch.Tensor:
     return torch.stack((boxes[:, 0] - BOX_MARGIN_M, boxes[:, 1] + BOX_MARGIN_M), dim=1)
 
 
-def weights_grid(subject: PosedSubject, canonical: CanonicalSubject, box_min: torch.Tensor, box_max: torch.Tensor,
+@dataclass(frozen=True)
+class PriorBody:
+    """What a shape prior is made from: the skeleton in canonical space, each frame's pose, and the
+    body model's template when there is one (float32 CPU tensors; lengths in meters).
+
+    Attributes:
+        skeleton: J joints; canonical_joints: (J, 3) in the canonical pose.
+        bone_transforms: (N, J, 4, 4) canonical -> posed world, per frame.
+        template_vertices: (V, 3) canonical template, template_weights: (V, J) its skinning
+            weights, template_faces: (F, 3) int64; all three None for a bare skeleton.
+    """
+
+    skeleton: Skeleton
+    canonical_joints: torch.Tensor
+    bone_transforms: torch.Tensor
+    template_vertices: torch.Tensor | None = None
+    template_weights: torch.Tensor | None = None
+    template_faces: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, subject: PosedSubject, canonical: CanonicalSubject) -> PriorBody:
+        """The body model's subject as preprocess poses it."""
+        has_template = canonical.template_vertices is not None
+        return cls(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms, canonical.template_vertices,
+                   subject.template_weights if has_template else None, subject.template_faces if has_template else None)
+
+    def posed_template(self, index: int) -> np.ndarray:
+        """(V, 3) float64 world vertices of the template in frame `index` (the body has a template)."""
+        return linear_blend_skinning(self.template_vertices, self.template_weights,
+                                     self.bone_transforms[index]).double().numpy()
+
+
+def weights_grid(body: PriorBody, box_min: torch.Tensor, box_max: torch.Tensor,
                   resolution: tuple[int, int, int], blur: WeightBlur = WeightBlur()) -> torch.Tensor:
     """(J, D, H, W) skinning weights over a box: the template's, or for a bare skeleton the bones'.
 
     `blur.passes` None keeps each source's default (TEMPLATE_WEIGHT_SMOOTHING for a template,
     BoneWeightConfig's for bones); the spread applies to a template only (bones have no vertices).
     """
-    if canonical.template_vertices is not None:
+    if body.template_vertices is not None:
         passes = TEMPLATE_WEIGHT_SMOOTHING if blur.passes is None else blur.passes
-        return build_skinning_grid(canonical.template_vertices, subject.template_weights, box_min, box_max, resolution,
+        return build_skinning_grid(body.template_vertices, body.template_weights, box_min, box_max, resolution,
                                    smoothing_iterations=passes, spread=blur.spread)
     config = BoneWeightConfig() if blur.passes is None else BoneWeightConfig(smoothing_iterations=blur.passes)
-    return build_bone_skinning_grid(canonical.canonical_joints, subject.skeleton, box_min, box_max, resolution, config)
+    return build_bone_skinning_grid(body.canonical_joints, body.skeleton, box_min, box_max, resolution, config)
 
 
 def body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: tuple[int, int, int],
@@ -150,12 +183,12 @@ def body_prior(subject: PosedSubject, canonical: CanonicalSubject, resolution: t
         vertices, faces, kind = capsules.vertices, capsules.faces, "capsules"
         posed_boxes = capsules.posed_boxes  # joints alone miss the crown, hands and feet
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=squeeze_axis(vertices), margin=GRID_MARGIN_M)
-    return ShapePrior(vertices, faces, kind, box_min, box_max, weights_grid(subject, canonical, box_min, box_max, resolution, blur), padded_boxes(posed_boxes))
+    grid = weights_grid(PriorBody.of(subject, canonical), box_min, box_max, resolution, blur)
+    return ShapePrior(vertices, faces, kind, box_min, box_max, grid, padded_boxes(posed_boxes))
 
 
 def hull_prior(
-    subject: PosedSubject,
-    canonical: CanonicalSubject,
+    body: PriorBody,
     views: list[int],
     masks: dict[int, np.ndarray],
     K: np.ndarray,
@@ -170,13 +203,13 @@ def hull_prior(
     sizes the final boxes and weight grid, and its vertices skinned into every frame give the
     posed boxes.
     """
-    lo, hi = search_box(canonical.canonical_joints)
-    search_weights = weights_grid(subject, canonical, lo, hi, resolution, blur)
-    skin = grid_skin(search_weights, lo, hi, canonical.bone_transforms)
+    lo, hi = search_box(body.canonical_joints)
+    search_weights = weights_grid(body, lo, hi, resolution, blur)
+    skin = grid_skin(search_weights, lo, hi, body.bone_transforms)
     mask_views = MaskViews(masks=[masks[i] for i in views], K=K[views], w2c=w2c[views], frames=views)
     # Cells that ride rigidly into another limb (ghost legs beside spread canonical legs) are dropped.
     ghost_test = GhostTest(
-        bones=PosedBones.from_skeleton(subject.skeleton, canonical.canonical_joints, canonical.bone_transforms),
+        bones=PosedBones.from_skeleton(body.skeleton, body.canonical_joints, body.bone_transforms),
         weights=lambda x: sample_skinning_weights(search_weights, lo, hi, x),
     )
     hull = hull_prior_mesh(hull_cells(torch.stack((lo, hi)), skin, mask_views, cell_size=HULL_CELL_M, ghost_test=ghost_test))
@@ -186,9 +219,9 @@ def hull_prior(
     # Squeezed less than a template's box: a hull is deeper than the body it bounds.
     box_min, box_max = canonical_grid_box(vertices, squeeze_axis=squeeze_axis(vertices), squeeze=HULL_BOX_SQUEEZE,
                                           margin=GRID_MARGIN_M)
-    grid = weights_grid(subject, canonical, box_min, box_max, resolution, blur)
-    skin = grid_skin(grid, box_min, box_max, canonical.bone_transforms)
-    posed = [skin(i, vertices) for i in range(canonical.bone_transforms.shape[0])]
+    grid = weights_grid(body, box_min, box_max, resolution, blur)
+    skin = grid_skin(grid, box_min, box_max, body.bone_transforms)
+    posed = [skin(i, vertices) for i in range(body.bone_transforms.shape[0])]
     posed_boxes = torch.stack([torch.stack((p.amin(0), p.amax(0))) for p in posed])
     return ShapePrior(vertices, hull.faces, "visual_hull", box_min, box_max, grid, padded_boxes(posed_boxes))
 
@@ -215,11 +248,14 @@ def hull_views(capture: CaptureV1, canonical: CanonicalSubject, shape_prior: str
     return []
 
 
-def posed_template_fit(subject: PosedSubject, canonical: CanonicalSubject, views: list[int], masks: dict[int, np.ndarray],
-                       K: np.ndarray, w2c: np.ndarray) -> TemplateFit:
-    """The views' masks against the posed template (igavatar.capture.loose_clothing.template_fit)."""
+def posed_template_fit(body: PriorBody, views: list[int], masks: dict[int, np.ndarray], K: np.ndarray,
+                       w2c: np.ndarray) -> TemplateFit:
+    """The views' masks against the posed template (igavatar.capture.loose_clothing.template_fit);
+    the body has a template. The root joint's posed position gives each view's depth."""
+    faces = body.template_faces.numpy()
+    root = body.canonical_joints[0].double()
     bodies = []
     for i in views:
-        body = segmentation_body(subject, canonical, i)
-        bodies.append((body.vertices, body.faces, canonical.posed_joints[i][0].double().numpy()))
+        transform = body.bone_transforms[i][0].double()
+        bodies.append((body.posed_template(i), faces, (transform[:3, :3] @ root + transform[:3, 3]).numpy()))
     return template_fit([masks[i] for i in views], bodies, K[views], w2c[views])

@@ -191,6 +191,10 @@ class TrainConfig:
     (tests/benchmarks/results/pose-noise.md)."""
     pose_align_lr: float = 0.004
     """Adam's rate of that fit (radians, meters): 16 steps can move a joint by up to about 3.7 degrees."""
+    pose_prior_vote: bool = True
+    """With refine_poses and that fit: where preprocess kept the naked template by its loose-clothing
+    rule, vote again on the fitted poses, and train on the masks' visual hull where it now wins
+    (igavatar.training.prior_vote: a dress on noisy poses)."""
     pose_silhouette_steps: int = 200
     """With refine_poses: Adam steps fitting every training frame's pose corrections to its mask
     before the first training step, the shape prior posed by them (igavatar.training.pose_silhouette);
