@@ -48,7 +48,7 @@ from igavatar.artifacts.manifest import InputRecord, build_manifest, validate_ag
 from igavatar.artifacts.targets import check_output_target
 from igavatar.artifacts.png import write_png
 from igavatar.avatar.dataset import DatasetArtifact, DatasetFrames, read_dataset
-from igavatar.avatar.model import ModelArtifact, load_model, read_model_manifest
+from igavatar.avatar.model import MODEL_PRIOR_FILE, ModelArtifact, load_model, read_model_manifest
 from igavatar.avatar.surfaces import canonical_surface
 from igavatar.capture.images import scale_intrinsics
 from igavatar.capture.scans import ScanMatching, default_gt_dir, match_scans
@@ -178,7 +178,8 @@ def _canonical_geometry(model: ModelArtifact, inputs: _Inputs, options: EvalOpti
     with clock("canonical_checks_s"):
         capture_dir = inputs.gt_dir.parent if inputs.gt_dir is not None and inputs.gt_dir.name == "scans" else None
         section, picture = canonical_section(inputs.dataset, capture_dir, (vertices, faces),
-                                             n_iou=min(options.iou_points, 200_000), seed=options.seed)
+                                             n_iou=min(options.iou_points, 200_000), seed=options.seed,
+                                             trained_prior=inputs.model_dir / MODEL_PRIOR_FILE)
     return _CanonicalGeometry(vertices, faces, record, section, picture)
 
 

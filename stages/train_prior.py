@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from igavatar.avatar.dataset import DatasetArtifact
+from igavatar.avatar.model import MODEL_PRIOR_FILE
 from igavatar.avatar.subject import SubjectArrays
 from igavatar.capture.shape_prior import PriorBody, WeightBlur
 from igavatar.training.config import TrainConfig
@@ -31,8 +32,8 @@ from igavatar.training.pose_silhouette import SilhouetteFit, corrected_data
 from igavatar.training.prior_vote import vote_prior
 from stages.progress import ProgressSink
 
-#: The hull voted on the fitted poses, in the work folder while training and beside the model after.
-REVOTED_PRIOR_FILE = "prior.ply"
+#: The hull voted on the fitted poses, in the work folder while training and in the model after.
+REVOTED_PRIOR_FILE = MODEL_PRIOR_FILE
 
 
 @dataclass(frozen=True)

@@ -126,3 +126,12 @@ def test_a_dress_kept_on_the_template_trains_on_the_hull_after_the_fit(dress_cap
     assert read_artifact(off, expected="model")["data"]["pose_refinement"]["prior_vote"] is None
     assert not (off / "prior.ply").exists()
     np.testing.assert_array_equal(SubjectArrays.read(off / "subject.npz").canonical_box, dataset.subject.canonical_box)
+
+    # eval's canonical picture shows the prior the model was trained from, not the dataset's.
+    from igavatar.avatar.canonical_report import canonical_section
+
+    pred = (np.asarray(hull.vertices), np.asarray(hull.faces))
+    _, dataset_picture = canonical_section(dataset, dress_capture / "capture", pred, n_iou=2000)
+    _, model_picture = canonical_section(dataset, dress_capture / "capture", pred, n_iou=2000,
+                                         trained_prior=straight / "prior.ply")
+    assert model_picture.shape == dataset_picture.shape and not np.array_equal(model_picture, dataset_picture)

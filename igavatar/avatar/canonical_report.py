@@ -57,8 +57,12 @@ def canonical_section(
     pred: tuple[np.ndarray, np.ndarray],
     n_iou: int = 200_000,
     seed: int = 0,
+    trained_prior: Path | None = None,
 ) -> tuple[dict[str, Any] | None, np.ndarray | None]:
     """The report's `canonical` section and its front/side picture; (None, None) without a template.
+
+    `trained_prior`: the mesh of the prior the model was trained from when it is not the dataset's
+    (the masks' hull that `train --refine-poses` voted on its fitted poses); the picture shows it.
 
     The limb check needs the template's vertices grouped by body part, so it runs for body models
     with named joints (Anny, SMPL) and for a bare skeleton of such a kind with a body fitted to it
@@ -96,5 +100,8 @@ def canonical_section(
     if truth is not None:
         rows.append(("truth (clothed)", truth[0], truth[1]))
     prior = dataset.shape_prior
-    rows.append(({"template": "template (naked)"}.get(prior, f"shape prior ({prior.replace('_', ' ')})"), prior_v, prior_f))
+    if trained_prior is not None and trained_prior.is_file():
+        rows.append(("shape prior (visual hull, voted on the fitted poses)", *_mesh_arrays(trained_prior)))
+    else:
+        rows.append(({"template": "template (naked)"}.get(prior, f"shape prior ({prior.replace('_', ' ')})"), prior_v, prior_f))
     return section, canonical_views_image(rows)

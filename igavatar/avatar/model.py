@@ -26,6 +26,10 @@ from igavatar.render.occupancy import OccupancyGrid
 from igavatar.training.checkpoint import load_state
 from igavatar.training.config import TrainConfig, config_from_json
 
+#: The shape prior's mesh when the model was trained from one of its own (the masks' visual hull that
+#: `train --refine-poses` voted on its fitted poses, stages.train_prior); its grid is in subject.npz.
+MODEL_PRIOR_FILE = "prior.ply"
+
 
 def build_avatar(config: TrainConfig, subject: SubjectArrays, pose_dim: int) -> Avatar:
     """A fresh avatar for a subject: its canonical box, skinning grid and root-finding seeds."""
