@@ -32,6 +32,17 @@ def dress_capture(tmp_path_factory):
     return run
 
 
+@pytest.fixture(scope="module")
+def kept_dataset(dress_capture, tmp_path_factory):
+    """The dress's dataset with preprocess made to keep the template (its spill rule at 1000x): the
+    dataset records the vote, as it does for a dress on noisy poses."""
+    out = tmp_path_factory.mktemp("kept") / "dataset"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(loose_clothing, "LOOSE_OVER_SPILL", 1000.0)
+        run_preprocess(PreprocessOptions(capture=dress_capture / "capture", out=out, max_size=96))
+    return out
+
+
 def _vote(dataset, data):
     body = _body(dataset, data.bone_transforms)
     assert body is not None
@@ -73,7 +84,8 @@ def _train(dataset, out, *extra):
             "--steps", "6", "--refine-poses", "--pose-silhouette-steps", "20", *extra]
 
 
-def test_a_dress_kept_on_the_template_trains_on_the_hull_after_the_fit(dress_capture, tmp_path, monkeypatch, cli_runner):
+def test_a_dress_kept_on_the_template_trains_on_the_hull_after_the_fit(dress_capture, kept_dataset, tmp_path,
+                                                                      monkeypatch, cli_runner):
     """preprocess made to keep the template (its spill rule at 1000x): the dataset records the vote,
     and `train --refine-poses` asks it again with the rule as it is, and trains on the hull; a run
     resumed after Ctrl-C votes the same and ends bit for bit as the straight one."""
@@ -83,10 +95,7 @@ def test_a_dress_kept_on_the_template_trains_on_the_hull_after_the_fit(dress_cap
     import igavatar.training.trainer as trainer_module
     from igavatar_cli.main import app
 
-    with monkeypatch.context() as patch:
-        patch.setattr(loose_clothing, "LOOSE_OVER_SPILL", 1000.0)
-        run_preprocess(PreprocessOptions(capture=dress_capture / "capture", out=tmp_path / "dataset", max_size=96))
-    dataset = read_dataset(tmp_path / "dataset")
+    dataset = read_dataset(kept_dataset)
     assert dataset.shape_prior == "template" and "loose_clothing" in dataset.data
     straight = tmp_path / "model"
     result = cli_runner.invoke(app, _train(dataset.path, straight))
@@ -135,3 +144,27 @@ def test_a_dress_kept_on_the_template_trains_on_the_hull_after_the_fit(dress_cap
     _, model_picture = canonical_section(dataset, dress_capture / "capture", pred, n_iou=2000,
                                          trained_prior=straight / "prior.ply")
     assert model_picture.shape == dataset_picture.shape and not np.array_equal(model_picture, dataset_picture)
+
+
+def test_a_dataset_made_before_the_weights_keeps_its_prior_and_says_why(kept_dataset, tmp_path, monkeypatch):
+    from igavatar.avatar.dataset import DatasetArtifact
+    from igavatar.training.config import preset
+    from igavatar.training.pose_refine import PoseRefiner
+    from stages.progress import NULL_PROGRESS
+    from stages.train_prior import revote_prior
+
+    dataset = read_dataset(kept_dataset)
+    data = training_data(dataset)
+    subject = dataset.subject
+    refiner = PoseRefiner(data.bone_transforms, subject.parents, subject.rest_joints, subject.canonical_rotations,
+                          data.train_indices, np.union1d([0], subject.init_bones))
+    config = dataclasses.replace(preset("tiny"), refine_poses=True)
+    fitted = object()  # the fit's record: only whether it ran matters here
+    monkeypatch.setattr(DatasetArtifact, "body_weights", lambda self, n_vertices: None)
+    vote = revote_prior(config, dataset, data, refiner, fitted, tmp_path, NULL_PROGRESS)
+    assert vote.subject is None and vote.mesh_path is None and "preprocess --force" in vote.report["skipped"]
+    assert vote.with_boxes(data) is data
+    # No fit, or the vote turned off: nothing to vote on.
+    assert revote_prior(config, dataset, data, refiner, None, tmp_path, NULL_PROGRESS) is None
+    off = dataclasses.replace(config, pose_prior_vote=False)
+    assert revote_prior(off, dataset, data, refiner, fitted, tmp_path, NULL_PROGRESS) is None
