@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from igavatar.avatar.dataset import read_dataset
+from igavatar.avatar.dataset import PRIOR_FILE, read_dataset
 from igavatar.avatar.model import build_avatar
 from igavatar.body.skeleton import forward_kinematics
 from igavatar.model.posed import PosedAvatar
@@ -34,7 +34,8 @@ def template_avatar(small_run, tmp_path_factory):
         samples_per_ray=32, occupancy_resolution=32,
         loss_weights=dataclasses.replace(preset("tiny").loss_weights, rgb=0.0, alpha=1.0))
     avatar = build_avatar(config, dataset.subject, dataset.pose_dim)
-    _shape_initialize(avatar, config, dataset, [tmp_path_factory.mktemp("init") / "shape_init.npz"], NULL_PROGRESS)
+    _shape_initialize(avatar, config, dataset.path / PRIOR_FILE, dataset.subject.canonical_box,
+                      [tmp_path_factory.mktemp("init") / "shape_init.npz"], NULL_PROGRESS)
     from igavatar.render.occupancy import OccupancyGrid
 
     grid = OccupancyGrid(avatar.canonical_box[0], avatar.canonical_box[1], resolution=config.occupancy_resolution)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from igavatar.avatar.dataset import read_dataset, training_data
+from igavatar.avatar.dataset import PRIOR_FILE, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.render.occupancy import OccupancyGrid
 from igavatar.training import pose_align
@@ -33,7 +33,8 @@ def _template_avatar(small_run, tmp_path, **overrides):
         validate_every=0, loss_weights=dataclasses.replace(preset("tiny").loss_weights, rgb=0.0, alpha=1.0),
         **overrides)
     avatar = build_avatar(config, dataset.subject, dataset.pose_dim)
-    _shape_initialize(avatar, config, dataset, [tmp_path / "shape_init.npz"], NULL_PROGRESS)
+    _shape_initialize(avatar, config, dataset.path / PRIOR_FILE, dataset.subject.canonical_box,
+                      [tmp_path / "shape_init.npz"], NULL_PROGRESS)
     # A surface as sharp as a trained one's (the tiny preset starts at beta 0.075 m: a haze whose
     # opacity says little about where the silhouette is).
     avatar.density.set_ceiling(0.01)

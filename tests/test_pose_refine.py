@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from igavatar.avatar.dataset import read_dataset, training_data
+from igavatar.avatar.dataset import PRIOR_FILE, read_dataset, training_data
 from igavatar.avatar.model import build_avatar
 from igavatar.body.rotations import axis_angle_to_matrix
 from igavatar.body.skeleton import bone_transforms, forward_kinematics
@@ -104,7 +104,8 @@ def test_refinement_reduces_a_known_pose_error(small_run, tmp_path):
         pose_lr=0.006, pose_prior_weight=0.0, lr=0.0, steps=80, validate_every=0,
         loss_weights=dataclasses.replace(preset("tiny").loss_weights, rgb=0.0, alpha=1.0))
     avatar = build_avatar(config, dataset.subject, dataset.pose_dim)
-    _shape_initialize(avatar, config, dataset, [tmp_path / "shape_init.npz"], NULL_PROGRESS)
+    _shape_initialize(avatar, config, dataset.path / PRIOR_FILE, dataset.subject.canonical_box,
+                      [tmp_path / "shape_init.npz"], NULL_PROGRESS)
     for parameter in avatar.parameters():
         parameter.requires_grad_(False)
     index = int(data.train_indices[0])
