@@ -259,7 +259,7 @@ def _model_data(dataset: DatasetArtifact, trainer: Trainer, last: dict[str, floa
                                 "silhouette": None if trainer.pose_silhouette is None else
                                 _rounded(trainer.pose_silhouette.report),
                                 "passes": [_rounded(report) for report in trainer.pose_align_reports],
-                                "prior_vote": None if revote is None else revote.report}}
+                                "prior_vote": None if revote is None else _rounded(revote.report)}}
            if trainer.pose_refiner is not None else {}),
     }
     if revote is not None and revote.subject is not None:

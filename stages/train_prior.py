@@ -96,8 +96,7 @@ def revote_prior(config: TrainConfig, dataset: DatasetArtifact, data: TrainingDa
     progress.status("voting the shape prior again on the fitted poses")
     resolution = tuple(int(n) for n in dataset.subject.skinning_grid.shape[1:])
     vote = vote_prior(body, data, resolution, _dataset_blur(dataset))
-    report = {"before": dataset.data["loose_clothing"], **{k: round(v, 5) if isinstance(v, float) else v
-                                                            for k, v in vote.report.items()}}
+    report = {"before": dataset.data["loose_clothing"], **vote.report}
     if vote.prior is None:
         return RevotedPrior(report)
     prior = vote.prior

@@ -86,10 +86,8 @@ def squeeze_axis(vertices: torch.Tensor) -> int:
 def segmentation_body(subject: PosedSubject, canonical: CanonicalSubject, index: int) -> PosedBody:
     """Frame `index`'s posed body for GrabCut seeding: the skinned template, else the skeleton."""
     if canonical.template_vertices is not None:
-        posed = linear_blend_skinning(
-            canonical.template_vertices, subject.template_weights, canonical.bone_transforms[index]
-        )
-        return PosedBody(vertices=posed.double().numpy(), faces=subject.template_faces.numpy())
+        return PosedBody(vertices=PriorBody.of(subject, canonical).posed_template(index),
+                         faces=subject.template_faces.numpy())
     return PosedBody(joints=canonical.posed_joints[index].double().numpy(), parents=subject.skeleton.parents)
 
 
