@@ -146,7 +146,7 @@ def animate(
 @user_errors
 @help_panels({INPUTS: ("model", "gt", "dataset", "out", "run_dir", "force"),
               QUALITY: ("geometry", "images", "image_scale", "image_frames", "samples", "device"),
-              "Estimated poses": ("refine_test_poses", "refine_test_pose_steps"),
+              "Estimated poses": ("carry_poses", "refine_test_poses", "refine_test_pose_steps"),
               ADVANCED: ("mesh_resolution", "surface_level", "surface_samples", "iou_points", "iou_open_meshes", "seed"),
               CONSOLE: ("quiet", "json_out")})
 def eval_(
@@ -179,6 +179,13 @@ def eval_(
     image_frames: Annotated[
         Optional[int], typer.Option(help="Render this many test frames, evenly spaced; 0 = all \\[default: all on a GPU, 10 on CPU].", min=0)
     ] = None,
+    carry_poses: Annotated[bool, typer.Option(
+        "--carry-poses/--no-carry-poses",
+        help="For a model trained with --refine-poses: a test frame between refined training frames of the same clip "
+             "(names frame_000123) takes their pose corrections, interpolated in time, for geometry and images; no "
+             "test image is used; recorded per frame in the report. Off: the dataset's poses. On three synthetic video "
+             "clips it gave +0.1 to +0.9 dB box PSNR, and CD-L1 -3.2 to +1.3 mm. export and animate always pose such "
+             "frames so.")] = False,
     refine_test_poses: Annotated[bool, typer.Option(
         help="Before scoring a test image, optimise that frame's pose against it (the avatar fixed), as peers "
              "do for estimated poses; image metrics only, recorded in the report. Geometry keeps the given poses.")] = False,
@@ -197,7 +204,7 @@ def eval_(
         model=model or layout.model, out=out or layout.report, gt=gt, dataset=dataset, geometry=geometry,
         images=images, mesh_resolution=mesh_resolution, surface_samples=surface_samples, iou_points=iou_points,
         iou_open_meshes=iou_open_meshes, image_scale=image_scale, samples_per_ray=samples, image_frames=image_frames,
-        seed=seed, device=device, surface_level=surface_level, refine_test_poses=refine_test_poses,
+        seed=seed, device=device, surface_level=surface_level, carry_poses=carry_poses, refine_test_poses=refine_test_poses,
         refine_test_pose_steps=refine_test_pose_steps, force=force,
     )
     run_stage(run_eval, options, quiet, json_out)

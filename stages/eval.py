@@ -68,7 +68,7 @@ from stages.eval_options import (
     resolve_dataset,
     resolve_image_settings,
 )
-from stages.eval_poses import refined_posed
+from stages.eval_poses import CarriedTestPoses, carried_poses, refined_posed
 from stages.eval_records import (
     ERROR_PANEL_MAX_SIDE,
     ERROR_VMAX_MM,
@@ -210,14 +210,17 @@ def _image_plan(options: EvalOptions, device: torch.device, dataset: DatasetArti
     return _ImagePlan(settings, frames, render_size(dataset_hw, settings.scale), dataset_hw, panel_hw)
 
 
-def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, canonical: _CanonicalGeometry | None,
-                    plan: _ImagePlan, lpips_fn, options: EvalOptions) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
+def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, poses: CarriedTestPoses,
+                    canonical: _CanonicalGeometry | None, plan: _ImagePlan, lpips_fn,
+                    options: EvalOptions) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
     """One test frame's record; with geometry, its posed vertices and their error (mm)."""
     test, device = inputs.test, model.device
     name = test.names[i]
     record: dict[str, Any] = {"frame": name, "scan": None, "values": {k: None for k in METRIC_KEYS},
                               "notes": [], "geometry": None, "image": None, "files": {}, "seconds": {}}
-    posed = model.posed(torch.from_numpy(test.bone_transforms[i]), torch.from_numpy(test.pose_condition[i]))
+    if poses.record(i) is not None:
+        record["carried_pose"] = poses.record(i)
+    posed = model.posed(torch.from_numpy(poses[i]), torch.from_numpy(test.pose_condition[i]))
     posed_v = error_mm = None
     if canonical is not None and name not in inputs.matching.matched:
         record["notes"].append(f"no scan named {name}.ply/.obj in {inputs.gt_dir}: geometry not evaluated")
@@ -233,7 +236,7 @@ def _evaluate_frame(tmp: Path, i: int, model: ModelArtifact, inputs: _Inputs, ca
     if i in plan.frames:
         tick = time.perf_counter()
         if options.refine_test_poses:
-            posed = refined_posed(record, model, inputs.dataset, test, i, options.refine_test_pose_steps,
+            posed = refined_posed(record, model, inputs.dataset, test, i, poses[i], options.refine_test_pose_steps,
                                   options.seed + i)
         size_hw = plan.size_hw
         render = render_posed_view(
@@ -302,6 +305,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     notes: list[str] = [skipped_geometry] if skipped_geometry else []
     canonical = _canonical_geometry(model, inputs, options, clock, notes, progress) if options.geometry else None
     names = list(inputs.test.names)
+    poses = carried_poses(model, inputs.dataset, inputs.test, options.carry_poses)
     plan = _image_plan(options, device, inputs.dataset, len(names), model.config.validation_samples)
     lpips_fn, lpips_status = lpips_scorer(device) if options.images else (None, "not computed: --no-images")
     records: list[dict] = []
@@ -309,7 +313,7 @@ def run_eval(options: EvalOptions, progress: ProgressSink = NULL_PROGRESS) -> di
     with atomic_directory(out, kind="report", inputs=[inputs.model_dir, inputs.dataset.path, inputs.gt_dir]) as tmp:
         with progress.task("evaluating test frames", total=len(names)) as advance:
             for i, name in enumerate(names):
-                record, posed_v, error_mm = _evaluate_frame(tmp, i, model, inputs, canonical, plan, lpips_fn, options)
+                record, posed_v, error_mm = _evaluate_frame(tmp, i, model, inputs, poses, canonical, plan, lpips_fn, options)
                 score = record["values"]["chamfer_l1_surface_mm"]
                 if posed_v is not None and (worst is None or score > worst[0]):
                     worst = (score, name, posed_v, error_mm)

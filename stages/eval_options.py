@@ -41,6 +41,9 @@ class EvalOptions:
     device: str = "auto"
     surface_level: str = SURFACE_LEVELS[0]
     """Where meshes are made: "silhouette" or "zero" (igavatar.model.avatar.SURFACE_LEVELS)."""
+    carry_poses: bool = False
+    """Pose the test frames between a model's refined training frames of one clip by their
+    neighbours' corrections, interpolated in time (igavatar.avatar.pose_carry); no test image is used."""
     refine_test_poses: bool = False
     """Refine each rendered test frame's pose against its image first (image metrics only)."""
     refine_test_pose_steps: int = 80
@@ -55,6 +58,7 @@ class EvalOptions:
             "iou_open_meshes": self.iou_open_meshes, "image_scale": self.image_scale,
             "samples_per_ray": self.samples_per_ray, "image_frames": self.image_frames, "seed": self.seed,
             "device": self.device,
+            "carry_poses": self.carry_poses,
             "test_time_pose_refinement": self.refine_test_poses,
             **({"test_pose_steps": self.refine_test_pose_steps} if self.refine_test_poses else {}),
             "surface_level": self.surface_level,

@@ -17,7 +17,7 @@ from igavatar.metrics.frame_geometry import frame_geometry
 from igavatar.metrics.image import evaluate_image, side_by_side
 from igavatar.metrics.report import METRIC_KEYS, METRICS, error_mesh_panel, mean_over_frames
 from stages.eval_options import EvalOptions, ImageSettings
-from stages.eval_poses import refinement_notes
+from stages.eval_poses import carried_notes, refinement_notes
 
 #: Distance (mm) shown fully red in the error-colored mesh panels.
 ERROR_VMAX_MM = 20.0
@@ -121,7 +121,7 @@ def report_document(
     n_approximate = sum(s == "approximate" for s in iou_states)
     if n_approximate:
         notes = notes + [f"IoU is approximate on {n_approximate} frame(s) (see their notes)"]
-    notes = notes + [f"LPIPS {lpips_status}"] + refinement_notes(records)
+    notes = notes + [f"LPIPS {lpips_status}"] + carried_notes(records) + refinement_notes(records)
     return {
         "inputs": {"model": str(model_dir), "dataset": str(dataset_dir), "gt": str(gt_dir) if gt_dir else None},
         "frame_names": frame_names,
@@ -132,6 +132,7 @@ def report_document(
             "image_size": list(size_hw), "dataset_image_size": list(dataset_hw),
             "samples_per_ray": image_settings.samples_per_ray,
             "image_frames": sum(r["image"] is not None for r in records), "background": "white",
+            "carry_poses": options.carry_poses,
             "test_time_pose_refinement": options.refine_test_poses,
             "error_vmax_mm": ERROR_VMAX_MM, "image_error_vmax": IMAGE_ERROR_VMAX, "bbox_pad": 0, "device": device,
         },

@@ -77,11 +77,11 @@ def _pose_refiner(config: TrainConfig, dataset: DatasetArtifact, data) -> PoseRe
 
 
 def _write_refined_poses(path: Path, trainer: Trainer) -> None:
-    """refined_poses.npz: the training frames' corrected transforms and the corrections."""
+    """refined_poses.npz: the training frames' corrected transforms, the corrected joints and the corrections."""
     refiner = trainer.pose_refiner
     names = np.array([trainer.data.frame_names[int(i)] for i in refiner.frames], dtype=np.str_)
     np.savez(path, frame_names=names, bone_transforms=refiner.all_bone_transforms().float().cpu().numpy(),
-             rotation_corrections=refiner.rotation.detach().cpu().numpy(),
+             joints=refiner.joints.cpu().numpy(), rotation_corrections=refiner.rotation.detach().cpu().numpy(),
              translation_corrections=refiner.translation.detach().cpu().numpy())
 
 

@@ -77,11 +77,28 @@ def test_video_to_dataset_train_export_animate(cli_runner, turn_clip, tmp_path):
     assert animated.exit_code == 0, animated.output
     # A video has no scans: eval scores the held-out images and says geometry was skipped.
     scored = _invoke(cli_runner, "eval", "--run-dir", str(run), "--image-scale", "0.25", "--samples", "16",
-                     "--device", "cpu", "--json")
+                     "--carry-poses", "--device", "cpu", "--json")
     assert scored.exit_code == 0, scored.output
     metrics = json.loads((run / "report" / "metrics.json").read_text())
     assert len(metrics["frames"]) == 3 and metrics["frames"][0]["values"]["psnr_full_db"] is not None
     assert "geometry is not evaluated" in json.dumps(metrics)
+    # The held-out frames lie between refined training frames of the clip: posed by their corrections.
+    carried = [f["frame"] for f in metrics["frames"] if f.get("carried_pose")]
+    assert metrics["settings"]["carry_poses"] is True and carried, metrics["frames"]
+    assert any(f"{len(carried)} of 3 test frames posed by the corrections" in n for n in metrics["notes"])
+    # export poses a held-out frame of the dataset as eval --carry-poses does.
+    held_out = _invoke(cli_runner, "export", "--run-dir", str(run), "--out", str(run / "mesh-5"), "--resolution", "32",
+                       "--formats", "ply", "--pose", str(run / "dataset"), "--frame", "5", "--device", "cpu", "--json")
+    assert held_out.exit_code == 0, held_out.output
+    posed = json.loads((run / "mesh-5" / "manifest.json").read_text())["data"]["posed"]
+    assert posed["frames"][0]["name"] == "frame_000005"
+    assert posed.get("carried_frames", 0) == int("frame_000005" in carried) and "refined_frames" not in posed
+    given = _invoke(cli_runner, "eval", "--run-dir", str(run), "--image-scale", "0.25", "--samples", "16",
+                    "--device", "cpu", "--json")  # by default, the dataset's poses
+    assert given.exit_code == 0, given.output
+    metrics_given = json.loads((run / "report" / "metrics.json").read_text())
+    assert metrics_given["settings"]["carry_poses"] is False
+    assert not any(f.get("carried_pose") for f in metrics_given["frames"])
 
 
 def _write_clip(path: Path, frames: list[np.ndarray]) -> Path:

@@ -17,12 +17,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from igavatar.artifacts.manifest import MANIFEST_NAME, InputRecord, read_artifact, read_manifest, sha256_file
 from igavatar.artifacts.npz import read_npz
 from igavatar.avatar.dataset import read_dataset
 from igavatar.avatar.model import ModelArtifact
+from igavatar.avatar.pose_carry import apply_corrections, carry_corrections
 from igavatar.body.motions import SKELETON_KINDS, motion_by_name, walk
 from igavatar.body.pose_files import local_pose_from_bone_transforms, read_pose_sequence, sequence_local_pose
 from igavatar.errors import ArtifactError, InputError
@@ -117,11 +119,12 @@ def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps:
     frames = all_frames.select(chosen)
     bone_transforms = torch.from_numpy(frames.bone_transforms).float()
     posed_joints = torch.from_numpy(frames.posed_joints).float()
-    refined = refined_frames(model, path, list(frames.names))
-    for slot, transforms in refined.items():
-        # The model's own training frames: the poses it refined while training (train --refine-poses).
+    own = model_frame_poses(model, path, list(frames.names), bone_transforms)
+    # The model's own training frames take the poses it refined while training (train --refine-poses),
+    # and the frames between them in the same clips their neighbours' corrections.
+    canonical_joints = torch.from_numpy(subject.canonical_joints).float()
+    for slot, transforms in {**own.refined, **own.carried}.items():
         bone_transforms[slot] = transforms
-        canonical_joints = torch.from_numpy(subject.canonical_joints).float()
         posed_joints[slot] = (transforms[:, :3, :3] @ canonical_joints[..., None])[..., 0] + transforms[:, :3, 3]
     rotations, translation = local_pose_from_bone_transforms(
         bone_transforms.double(), subject.parents, torch.from_numpy(subject.rest_joints).double(),
@@ -134,25 +137,83 @@ def dataset_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps:
         posed_joints=posed_joints, fps=float(fps or DEFAULT_FPS),
         description={"source": str(path), "format": "dataset", "skeleton": model.body_model,
                      "source_frames": all_frames.n_frames, "frame_indices": chosen,
-                     **({"refined_frames": len(refined)} if refined else {})},
+                     **({"refined_frames": len(own.refined)} if own.refined else {}),
+                     **({"carried_frames": len(own.carried)} if own.carried else {})},
         inputs=(InputRecord(path, "dataset"),),
     )
 
 
-def refined_frames(model: ModelArtifact, dataset_path: Path, names: list[str]) -> dict[int, torch.Tensor]:
-    """Slot in `names` -> (J, 4, 4) refined transforms, for the frames the model refined, when
-    `dataset_path` is the dataset the model was trained on (same manifest hash); else empty."""
+@dataclass(frozen=True)
+class ModelFramePoses:
+    """The model's own poses for some of a dataset's frames.
+
+    Attributes:
+        refined: slot -> (J, 4, 4) transforms of the frames the model refined (its training frames).
+        carried: slot -> (J, 4, 4) transforms of other frames of the same clips, corrected by their
+            refined neighbours' corrections interpolated in time (igavatar.avatar.pose_carry).
+        carried_sizes: slot -> {"mean_joint_correction_deg", "root_correction_mm"}: the size of the
+            correction each carried frame took.
+    """
+
+    refined: dict[int, torch.Tensor] = field(default_factory=dict)
+    carried: dict[int, torch.Tensor] = field(default_factory=dict)
+    carried_sizes: dict[int, dict[str, float]] = field(default_factory=dict)
+
+
+def _refined_file(model: ModelArtifact, dataset_path: Path) -> dict | None:
+    """The model's refined_poses.npz when it refined poses of the dataset at `dataset_path` (same
+    manifest hash), else None."""
     refined_file = model.path / REFINED_POSES_FILE
     if not refined_file.is_file():
-        return {}
+        return None
     trained_on = [record.get("sha256") for record in model.manifest["inputs"] if record.get("artifact") == "dataset"]
     if sha256_file(dataset_path / MANIFEST_NAME) not in trained_on:
-        return {}
-    refined = read_npz(refined_file, {"frame_names": ("N",), "bone_transforms": ("N", "J", 4, 4)}, "refined poses",
-                       "re-run `igavatar train`", sizes={"J": model.subject.n_joints})
+        return None
+    shapes = {"frame_names": ("N",), "bone_transforms": ("N", "J", 4, 4), "rotation_corrections": ("N", "K", 3),
+              "translation_corrections": ("N", 3)}
+    with np.load(refined_file) as stored:
+        recorded_joints = "joints" in stored.files
+    if recorded_joints:
+        shapes["joints"] = ("K",)
+    refined = read_npz(refined_file, shapes, "refined poses", "re-run `igavatar train`",
+                       sizes={"J": model.subject.n_joints})
+    if not recorded_joints:
+        # Written before the file named them: train corrected the root and the major bones.
+        refined["joints"] = np.union1d([0], np.asarray(model.subject.init_bones, dtype=np.int64))
+        if len(refined["joints"]) != refined["rotation_corrections"].shape[1]:
+            raise ArtifactError(f"{refined_file}: rotation_corrections has {refined['rotation_corrections'].shape[1]} "
+                                "joints and the file does not say which; re-run `igavatar train`")
+    return refined
+
+
+def model_frame_poses(model: ModelArtifact, dataset_path: Path, names: list[str], bone_transforms: torch.Tensor,
+                      carry: bool = True) -> ModelFramePoses:
+    """The model's poses for the frames `names` of the dataset at `dataset_path`, whose stored
+    transforms are bone_transforms (N, J, 4, 4): refined for the frames it refined and, with `carry`,
+    carried in time to other frames of their clips. Empty for a model that refined none of its poses."""
+    refined = _refined_file(model, dataset_path)
+    if refined is None:
+        return ModelFramePoses()
     by_name = {str(name): i for i, name in enumerate(refined["frame_names"])}
     transforms = torch.from_numpy(refined["bone_transforms"]).float()
-    return {slot: transforms[by_name[name]] for slot, name in enumerate(names) if name in by_name}
+    poses = ModelFramePoses(refined={slot: transforms[by_name[name]] for slot, name in enumerate(names) if name in by_name})
+    if not carry:
+        return poses
+    carried = carry_corrections(list(by_name), transforms[:, 0, :3, :3],
+                                torch.from_numpy(refined["rotation_corrections"]).float(),
+                                torch.from_numpy(refined["translation_corrections"]).float(),
+                                list(names), bone_transforms[:, 0, :3, :3].float())
+    if len(carried):
+        subject = model.subject
+        corrected = apply_corrections(bone_transforms[carried.positions].double(), subject.parents,
+                                      subject.rest_joints, subject.canonical_rotations, refined["joints"],
+                                      carried.rotation, carried.translation)
+        poses.carried.update(dict(zip(carried.positions, corrected)))
+        degrees = torch.rad2deg(carried.rotation.norm(dim=-1)).mean(-1)
+        millimetres = 1000 * carried.translation.norm(dim=-1)
+        poses.carried_sizes.update({slot: {"mean_joint_correction_deg": float(d), "root_correction_mm": float(m)}
+                                    for slot, d, m in zip(carried.positions, degrees, millimetres)})
+    return poses
 
 
 def file_poses(model: ModelArtifact, path: Path, select: FrameSelection, fps: float | None,

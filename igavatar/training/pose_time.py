@@ -99,12 +99,12 @@ def time_triplets(frame_names: list[str], root_rotations: torch.Tensor | None = 
     triplets = TimeTriplets(positions[:, 0], positions[:, 1], positions[:, 2], table[:, 3], table[:, 4])
     if root_rotations is None or len(triplets) == 0:
         return triplets
-    turns = torch.stack((_turn_deg(root_rotations, triplets.previous, triplets.middle),
-                         _turn_deg(root_rotations, triplets.middle, triplets.following))).amax(0)
+    turns = torch.stack((root_turn_deg(root_rotations, triplets.previous, triplets.middle),
+                         root_turn_deg(root_rotations, triplets.middle, triplets.following))).amax(0)
     return triplets.subset(turns <= MAX_ROOT_TURN_DEG)
 
 
-def _turn_deg(rotations: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+def root_turn_deg(rotations: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
     """(M,) angle in degrees between rotations (T, 3, 3) at positions first and second (M,)."""
     relative = rotations[first].double().transpose(-1, -2) @ rotations[second].double()
     return torch.rad2deg(matrix_to_axis_angle(relative).norm(dim=-1))

@@ -37,7 +37,7 @@ from provenance import command, commit
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from igavatar.avatar.dataset import read_dataset  # noqa: E402
 from igavatar.avatar.model import load_model  # noqa: E402
-from igavatar.avatar.poses import refined_frames  # noqa: E402
+from igavatar.avatar.poses import model_frame_poses  # noqa: E402
 from igavatar.metrics.image import mask_bbox  # noqa: E402
 from igavatar.render.rays import pixel_grid, pixel_rays, rays_in_box  # noqa: E402
 from igavatar.render.sampler import sample_along_rays  # noqa: E402
@@ -122,7 +122,8 @@ def main() -> None:
     dataset = read_dataset(args.dataset or model.recorded_dataset)
     frames = dataset.frames()
     # The model's refined training poses, by frame slot (none when it refined none or was trained on another dataset).
-    refined = {} if args.dataset_poses else refined_frames(model, dataset.path, list(frames.names))
+    refined = {} if args.dataset_poses else model_frame_poses(
+        model, dataset.path, list(frames.names), torch.from_numpy(frames.bone_transforms), carry=False).refined
     records = {}
     for name in args.frames:
         if name not in frames.names:
