@@ -49,7 +49,8 @@ def train(
              "kept near the estimate; saved in the model (refined_poses.npz) and used by export, animate and eval for "
              "those frames \\[default: off: with 5 degrees of pose noise a joint it cut the shape's error from 21-22 to "
              "6-6.5 mm on two subjects (exact poses 4), but on the video path's own fitted poses it cost the held-out frames "
-             "0.9 dB, and on poses that are right it has not been shown to help].")] = None,
+             "0.5-0.8 dB on three clips (0.1-0.9 dB of it back with eval --carry-poses), and on poses that are right it "
+             "has not been shown to help].")] = None,
     pose_lr: Annotated[Optional[float], typer.Option(
         help="Learning rate of the pose corrections when they start at half-way, falling linearly to 0 at the end \\[default: 0.002].")] = None,
     pose_prior_weight: Annotated[Optional[float], typer.Option(

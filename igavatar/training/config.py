@@ -167,7 +167,8 @@ class TrainConfig:
     6.4 mm on two subjects (exact poses 3.7 and 4.3) at the cost of a 10 s fit
     (tests/benchmarks/results/pose-noise-temporal.md), but on poses that are right it has not been shown to
     help (ZJU-MoCap 377, zju377-registration.md), and on the video path's fitted poses the held-out
-    frames, which keep the fit's poses, lost 0.9 dB (video-path-refine.md)."""
+    frames lost 0.5-0.8 dB box PSNR on three clips, and still lost on two of them when posed by
+    their refined neighbours' corrections (video-carry-poses.md)."""
     pose_lr: float = 0.002
     """Learning rate of the pose corrections (radians, meters) when they start, falling linearly to 0
     at the end of training; each frame's are stepped only on the steps that draw it (SparseAdam),
