@@ -28,7 +28,7 @@ def _view_settings(view: bool, host: str, port: int, mesh_every: int, mesh_resol
               ADVANCED: ("regularizer", "smooth_weight", "smooth_pairs", "smooth_form", "smooth_band", "beta_init",
                          "beta_final", "beta_anneal_fraction", "lr_decay_power", "free_space_weight", "body_inside_weight", "body_inside_max_spill", "sdf_encoding",
                          "table_adam", "table_lr_factor", "color_normal_gradient", "color_feature_gradient", "color_shapes_geometry",
-                         "color_weights_gradient", "color_weights_outline_px", "color_grid", "shading",
+                         "color_weights_gradient", "color_weights_outline_px", "color_weights_edge_contrast", "color_grid", "shading",
                          "error_sampling", "outline_sampling"),
               CONSOLE: ("quiet", "json_out")})
 def train(
@@ -136,6 +136,11 @@ def train(
         help="Pixels from the mask's outline within which the colour loss passes its whole gradient through the "
              "weights; elsewhere --color-weights-gradient applies. The images then shape the silhouette without "
              "carving a pattern inside it \\[default: the preset's: cpu the images' longer side / 128 (4 at 512 px), paper and tiny 0 (off)].")] = None,
+    color_weights_edge_contrast: Annotated[Optional[float], typer.Option(
+        help="Luma contrast in [0, 1]: a ray off the outline band whose window (the band's width) spans more than "
+             "this on the person lies on a pattern's edge (a stripe, a checker, a logo) and passes none of the "
+             "colour loss's gradient through the weights, since a pattern carves only where its colour changes; 0: off "
+             "\\[default: the preset's: 0 (off)].")] = None,
     color_grid: Annotated[Optional[bool], typer.Option(
         "--color-grid/--no-color-grid",
         help="Give the colour network a hash grid of its own (the SDF grid's table, at most 8 levels up to 512 cells) beside the SDF's features. "
@@ -175,6 +180,7 @@ def train(
         color_normal_gradient=color_normal_gradient, color_grid=color_grid,
         color_feature_gradient=color_feature_gradient, color_shapes_geometry=color_shapes_geometry,
         color_weights_gradient=color_weights_gradient, color_weights_outline_px=color_weights_outline_px,
+        color_weights_edge_contrast=color_weights_edge_contrast,
         decoupled_color=decoupled_color, shading=shading,
         error_sampling=error_sampling, outline_sampling=outline_sampling,
         view=_view_settings(view, view_host, view_port, view_mesh_every, view_mesh_resolution),

@@ -75,6 +75,9 @@ class TrainOptions:
     color_weights_gradient: float | None = None
     #: Pixels from the mask's outline within which the weights get the colour's whole gradient; None: the preset's (0: off).
     color_weights_outline_px: int | None = None
+    #: Luma contrast in (0, 1] above which a ray off the outline band is on a pattern's edge and passes
+    #: none of the colour's gradient through the weights; 0: off; None: the preset's (0).
+    color_weights_edge_contrast: float | None = None
     #: True: the colour field gets a hash grid of its own, shaped as the SDF's; None: the preset's (cpu: on, paper: off).
     color_grid: bool | None = None
     #: The posed colour's light: "none" or "sh9" (igavatar.model.shading); None: the preset's (cpu sh9, paper none).
@@ -148,6 +151,14 @@ def _color_options(config: TrainConfig, options: TrainOptions) -> TrainConfig:
         if not 0 <= options.color_weights_outline_px <= 64:
             raise InputError(f"--color-weights-outline-px {options.color_weights_outline_px}: expected pixels in [0, 64] (0: off)")
         config = dataclasses.replace(config, color_weights_outline_px=options.color_weights_outline_px)
+    if options.color_weights_edge_contrast is not None:
+        if not 0.0 <= options.color_weights_edge_contrast <= 1.0:
+            raise InputError(f"--color-weights-edge-contrast {options.color_weights_edge_contrast}: expected a luma "
+                             "contrast in [0, 1] (0: off)")
+        config = dataclasses.replace(config, color_weights_edge_contrast=options.color_weights_edge_contrast)
+    if config.color_weights_edge_contrast > 0 and config.color_weights_outline_px == 0:
+        raise InputError("--color-weights-edge-contrast needs the outline band (its window's width): give "
+                         "--color-weights-outline-px N (N >= 1), or --color-weights-edge-contrast 0")
     color = config.avatar.color
     grid, features, normal = (given(options.color_grid, True), given(options.color_feature_gradient, False),
                               given(options.color_normal_gradient, False))

@@ -78,6 +78,12 @@ class TrainConfig:
     shape the silhouette, and a pattern inside it is not carved (0: `color_weights_gradient` on
     every ray; OUTLINE_AUTO: `outline_px_for(image size)`, resolved by the train stage once the
     dataset is read, so a saved config always holds the pixels used)."""
+    color_weights_edge_contrast: float = 0.0
+    """With the outline band on, rays off it whose window of the band's width spans a luma contrast
+    above this on the person (a bold stripe's or checker's edge: igavatar.training.outline.
+    texture_edge_rays) pass none of the colour loss's gradient through the weights, the others
+    `color_weights_gradient`: a pattern changes colour only at its edges, so that is where it carves
+    (0: off, the paper)."""
     samples_per_ray: int = 256
     """Bins per ray before empty-space skipping (official: up to 256)."""
     lr: float = 1e-2

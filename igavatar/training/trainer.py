@@ -42,7 +42,7 @@ from igavatar.render.volume import ImageRender, render_rays
 from igavatar.training.config import TrainConfig
 from igavatar.training.data import TrainingData, sample_patch_pixels
 from igavatar.training.optim import SparseAdam, adam
-from igavatar.training.outline import outline_rays, weights_gradient_scale
+from igavatar.training.outline import outline_rays, texture_edge_rays, weights_gradient_scale
 from igavatar.training.error_map import ErrorMap
 from igavatar.training.pose_align import align_training_poses, pass_steps
 from igavatar.training.pose_refine import PoseRefiner, with_pose_gradient
@@ -310,8 +310,13 @@ class Trainer:
         if config.color_weights_outline_px < 0:
             raise ValueError("color_weights_outline_px is OUTLINE_AUTO: resolve it for the images first "
                              "(stages.train_options.with_outline_px)")
-        on_band = outline_rays(self.data.masks[index], pixels, config.color_weights_outline_px)
-        return weights_gradient_scale(on_band, config.color_weights_gradient).to(self.device)
+        width = config.color_weights_outline_px
+        on_band = outline_rays(self.data.masks[index], pixels, width)
+        on_edge = None
+        if config.color_weights_edge_contrast > 0:
+            on_edge = texture_edge_rays(self.data.images[index], self.data.masks[index], pixels, width,
+                                        config.color_weights_edge_contrast)
+        return weights_gradient_scale(on_band, config.color_weights_gradient, on_edge).to(self.device)
 
     def _draw_pixels(self, index: int) -> torch.Tensor:
         """The step's patch pixels (P, 2) of frame `index`; some person-centred patches centred on the
